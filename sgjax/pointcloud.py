@@ -1,0 +1,166 @@
+"""Point-cloud input: loading, checking, downsampling and padding into fixed-shape batches.
+
+Every check that decides whether a cloud can be fitted lives in `cloud_status`, written once over an
+array module so that the host (NumPy, clear exceptions) and the device (JAX, per-cloud status inside a
+batch) agree exactly.
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Sequence
+
+import numpy as np
+
+# Status codes shared by the host checks and the batched fit.
+OK = 0
+TOO_FEW_POINTS = 1
+NON_FINITE = 2
+IDENTICAL_POINTS = 3
+COLLINEAR = 4
+COPLANAR = 5
+FIT_FAILED = 6
+
+MIN_POINTS = 11  # fewer than the 11 unknowns of a posed superquadric cannot determine it
+
+STATUS_MESSAGES = {
+    OK: "ok",
+    TOO_FEW_POINTS: f"too few points (a superquadric needs at least {MIN_POINTS})",
+    NON_FINITE: "the cloud contains NaN or inf coordinates",
+    IDENTICAL_POINTS: "all points are identical",
+    COLLINEAR: "the points are collinear",
+    COPLANAR: "the points are coplanar (no extent along one direction)",
+    FIT_FAILED: "the fit did not converge to finite parameters",
+}
+
+# Degeneracy thresholds: spread below 1 micrometre is one point; a principal variance ratio below
+# 1e-8 (thickness below 1e-4 of the length) is a line or a plane, far below any real sensor's noise.
+_IDENTICAL_STD = 1e-6
+_FLAT_RATIO = 1e-8
+
+
+class CloudError(ValueError):
+    """A point cloud that cannot be used, with a message naming the problem."""
+
+
+def describe_status(code: int) -> str:
+    """Human-readable meaning of a status code."""
+    return STATUS_MESSAGES.get(int(code), f"unknown status {int(code)}")
+
+
+def cloud_status(points, mask, xp=np):
+    """Status code of one cloud: points[N, 3], mask[N] bool -> int (scalar array under JAX).
+
+    `xp` is `numpy` or `jax.numpy`; the logic is the same for both.
+    """
+    finite = xp.all(xp.isfinite(points), axis=-1)
+    any_bad = xp.any(mask & ~finite)
+    use = mask & finite
+    n = xp.sum(use)
+    w = use.astype(points.dtype)
+    safe = xp.where(use[:, None], points, 0.0)
+    centroid = xp.sum(safe * w[:, None], axis=0) / xp.maximum(n, 1)
+    centred = (safe - centroid) * w[:, None]
+    cov = centred.T @ centred / xp.maximum(n, 1)
+    lam = xp.linalg.eigvalsh(cov)  # ascending
+    lam_max = xp.maximum(lam[2], 1e-30)
+    code = xp.where(lam[0] / lam_max < _FLAT_RATIO, COPLANAR, OK)
+    code = xp.where(lam[1] / lam_max < _FLAT_RATIO, COLLINEAR, code)
+    code = xp.where(lam[2] < _IDENTICAL_STD**2, IDENTICAL_POINTS, code)
+    code = xp.where(n < MIN_POINTS, TOO_FEW_POINTS, code)
+    code = xp.where(any_bad, NON_FINITE, code)
+    return code
+
+
+def as_cloud(points, name: str = "cloud") -> np.ndarray:
+    """Validate an array-like as one cloud: -> float64 [N, 3]; raises CloudError naming the problem."""
+    try:
+        arr = np.asarray(points, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise CloudError(f"{name}: not a numeric array ({exc})") from None
+    if arr.ndim != 2 or arr.shape[-1] != 3:
+        raise CloudError(f"{name}: expected an array of shape (N, 3), got {arr.shape}")
+    if arr.shape[0] == 0:
+        raise CloudError(f"{name}: the cloud is empty")
+    code = int(cloud_status(arr, np.ones(len(arr), bool)))
+    if code != OK:
+        raise CloudError(f"{name}: {describe_status(code)} ({len(arr)} points)")
+    return arr
+
+
+def load_cloud(path: str | os.PathLike) -> np.ndarray:
+    """Read a cloud from .npy (N x 3, metres), .ply or .pcd -> float64 [N, 3]; raises CloudError."""
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise CloudError(f"{path}: no such file")
+    ext = os.path.splitext(path)[1].lower()
+    try:
+        if ext == ".npy":
+            arr = np.load(path, allow_pickle=False)
+        elif ext == ".ply":
+            import trimesh
+
+            geom = trimesh.load(path, process=False)
+            if not hasattr(geom, "vertices"):
+                raise CloudError(f"{path}: the PLY file holds no vertices")
+            arr = np.asarray(geom.vertices)
+        elif ext == ".pcd":
+            arr = _read_pcd(path)
+        else:
+            raise CloudError(f"{path}: unsupported extension {ext!r} (use .npy, .ply or .pcd)")
+    except CloudError:
+        raise
+    except Exception as exc:  # any parser failure is an unreadable file, not a crash
+        raise CloudError(f"{path}: cannot read the file ({type(exc).__name__}: {exc})") from None
+    return as_cloud(arr, name=path)
+
+
+def _read_pcd(path: str) -> np.ndarray:
+    try:
+        import open3d as o3d
+    except ImportError as exc:  # e.g. a missing system library such as libusb-1.0
+        raise CloudError(f"{path}: reading .pcd needs open3d, which failed to import ({exc})") from None
+    with open(path, "rb") as fh:
+        if not fh.read(256).lstrip().startswith((b"#", b"VERSION", b"FIELDS")):
+            raise CloudError(f"{path}: not a PCD file (bad header)")
+    cloud = o3d.io.read_point_cloud(path, format="pcd")
+    return np.asarray(cloud.points)
+
+
+def downsample(points: np.ndarray, max_points: int, seed: int = 0) -> np.ndarray:
+    """At most `max_points` points chosen uniformly at random without replacement (deterministic in seed).
+
+    [N, 3] -> [min(N, max_points), 3]. Random subsets keep the density of a single-view cloud, which
+    the EMS likelihood assumes; a 10^6-point cloud costs one O(N) pass.
+    """
+    if len(points) <= max_points:
+        return points
+    idx = np.random.default_rng(seed).choice(len(points), size=max_points, replace=False)
+    return points[np.sort(idx)]
+
+
+def padded_size(n: int, multiple: int = 128) -> int:
+    """Round a point count up so that nearby sizes share one compiled fit."""
+    return max(multiple, -(-n // multiple) * multiple)
+
+
+def pad_clouds(
+    clouds: Sequence[np.ndarray], max_points: int = 1024, seed: int = 0, n_points: int | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Downsample each cloud to <= max_points and pad into one batch.
+
+    Returns points[B, N, 3] float32 and mask[B, N] bool, where N is `n_points` or the largest cloud
+    rounded up by `padded_size`. Cloud i is downsampled with seed `seed + i`.
+    """
+    if len(clouds) == 0:
+        raise CloudError("no clouds given")
+    sampled = [downsample(np.asarray(c, np.float64), max_points, seed + i) for i, c in enumerate(clouds)]
+    size = n_points or padded_size(max(len(c) for c in sampled))
+    points = np.zeros((len(sampled), size, 3), np.float32)
+    mask = np.zeros((len(sampled), size), bool)
+    for i, c in enumerate(sampled):
+        if len(c) > size:
+            raise CloudError(f"cloud {i} has {len(c)} points, more than the padded size {size}")
+        points[i, : len(c)] = c
+        mask[i, : len(c)] = True
+    return points, mask
