@@ -34,9 +34,10 @@ STATUS_MESSAGES = {
 }
 
 # Degeneracy thresholds: spread below 1 micrometre is one point; a principal variance ratio below
-# 1e-8 (thickness below 1e-4 of the length) is a line or a plane, far below any real sensor's noise.
+# 1e-6 (thickness below 1e-3 of the length; float32 eigenvalues resolve ~1e-7) is a line or a plane,
+# far below any real sensor's noise.
 _IDENTICAL_STD = 1e-6
-_FLAT_RATIO = 1e-8
+_FLAT_RATIO = 1e-6
 
 
 class CloudError(ValueError):

@@ -170,7 +170,7 @@ def _select(cond: jax.Array, a: Superquadric, b: Superquadric) -> Superquadric:
     return jax.tree_util.tree_map(pick, a, b)
 
 
-def canonicalize(sq: Superquadric, eps_tol: float = 0.05) -> Superquadric:
+def canonicalize(sq: Superquadric, eps_tol: float = 1e-3) -> Superquadric:
     """The canonical frame among the frames that describe the same surface.
 
     Symmetries used: the x/y exchange (always), any axis permutation when |eps1 - eps2| < eps_tol

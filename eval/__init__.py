@@ -1,0 +1,1 @@
+"""Decluttering benchmark, baselines, ablations and reports. Imports `sgjax`, `envs` and `train`."""

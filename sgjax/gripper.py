@@ -1,0 +1,348 @@
+"""Parallel-jaw gripper spec and geometry: closing region, enlarged region, collision boxes.
+
+`GripperSpec` is the single source of truth for the gripper's dimensions, shared by Stage 1 (template
+widths, coarse filtering), the E-RNet crops and the simulated gripper.
+
+Frame convention (the gripper frame, paper Fig. 5):
+  * z is the approach axis, pointing from the palm towards the object;
+  * x is the closing axis: the fingers move along +-x, the left finger on -x, the right finger on +x;
+  * y = z cross x (right-handed), the direction of the fingers' `finger_width`;
+  * the origin is the centre of the closing region's palm-side face, so the closing region of width w
+    is the box  |x| <= w/2,  |y| <= finger_width/2,  0 <= z <= finger_length  (fingertips at z = L).
+  * The fingers are the boxes  w/2 <= |x| <= w/2 + finger_thickness  over the same y, z ranges, and the
+    palm is the box  |x| <= palm_size[0]/2,  |y| <= palm_size[1]/2,  -palm_size[2] <= z <= 0.
+A grasp is (pose[4, 4], width): the pose maps gripper-frame points to world, p_w = R p_g + t, so the
+columns of R are the gripper axes (x, y, z) in the world frame and t is the origin above.
+
+Refinement (paper Sec. IV-C/IV-D, Fig. 5b): the pose is deepened by `deepen` along +z (towards the
+object), then rotated about its own z axis by each of `refine_angles_deg`. The enlarged region used for
+the E-RNet crop is the union of the closing regions of the initial pose and the three refined poses.
+
+Everything except `check_width` is JAX, batched over leading axes and jit-friendly (pass the spec as a
+static argument); wrong shapes raise ValueError at trace time.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from sgjax.rotations import rot_z
+
+
+@dataclasses.dataclass(frozen=True)
+class GripperSpec:
+    """Dimensions of a parallel-jaw gripper (metres, degrees); hashable, so usable as a static jit arg.
+
+    max_opening: largest distance between the inner finger faces.
+    finger_length: paper "L", fingertip length along z (depth of the closing region).
+    finger_width: finger extent along y (the closing region's y extent).
+    finger_thickness: finger extent along x.
+    palm_size: (x, y, z) extents of the palm box behind the fingers (z < 0).
+    deepen: refinement translation along +z (paper: 0.008 m).
+    refine_angles_deg: refinement rotations about z after deepening (paper: -15, 0, +15).
+    contact_threshold: paper "delta", the inner-face-to-surface distance at which the template
+        width is read off when closing the gripper (paper: 0.0125 m).
+    """
+
+    max_opening: float = 0.08
+    finger_length: float = 0.05
+    finger_width: float = 0.02
+    finger_thickness: float = 0.01
+    palm_size: tuple[float, float, float] = (0.10, 0.03, 0.02)
+    deepen: float = 0.008
+    refine_angles_deg: tuple[float, ...] = (-15.0, 0.0, 15.0)
+    contact_threshold: float = 0.0125
+
+    def __post_init__(self):
+        # Tuples keep the spec hashable even when lists are passed.
+        object.__setattr__(self, "palm_size", tuple(float(v) for v in self.palm_size))
+        object.__setattr__(self, "refine_angles_deg", tuple(float(v) for v in self.refine_angles_deg))
+        if len(self.palm_size) != 3:
+            raise ValueError(f"palm_size must have 3 entries (x, y, z), got {self.palm_size}")
+        positive = {
+            "max_opening": self.max_opening,
+            "finger_length": self.finger_length,
+            "finger_width": self.finger_width,
+            "finger_thickness": self.finger_thickness,
+            "palm_size": min(self.palm_size),
+        }
+        for name, value in positive.items():
+            if not value > 0:
+                raise ValueError(f"GripperSpec.{name} must be positive, got {value}")
+        if self.deepen < 0 or self.contact_threshold < 0:
+            raise ValueError("GripperSpec.deepen and contact_threshold must be non-negative")
+        if not self.refine_angles_deg:
+            raise ValueError("GripperSpec.refine_angles_deg must not be empty")
+        # The palm must carry both fingers at full opening.
+        span = self.max_opening + 2 * self.finger_thickness
+        if self.palm_size[0] < span - 1e-9:
+            raise ValueError(f"palm_size[0]={self.palm_size[0]} is narrower than the open fingers' span {span}")
+
+    @property
+    def num_refinements(self) -> int:
+        return len(self.refine_angles_deg)
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Box:
+    """Oriented boxes; every field may carry the same leading batch axes [...].
+
+    centre: [..., 3] in the world frame.
+    rotation: [..., 3, 3] box axes as columns, in the world frame.
+    half_extents: [..., 3] along the box axes.
+    """
+
+    centre: jax.Array
+    rotation: jax.Array
+    half_extents: jax.Array
+
+    def __getitem__(self, index) -> "Box":
+        return jax.tree_util.tree_map(lambda x: x[index], self)
+
+
+# ---------------------------------------------------------------------------------------------
+# Shape checks (static shapes, so they run at trace time).
+
+
+def _points(points, name: str = "points") -> jax.Array:
+    points = jnp.asarray(points)
+    if points.ndim < 2 or points.shape[-1] != 3:
+        raise ValueError(f"{name} must have shape [..., N, 3], got {points.shape}")
+    return points
+
+
+def _pose(pose) -> jax.Array:
+    pose = jnp.asarray(pose)
+    if pose.ndim < 2 or pose.shape[-2:] != (4, 4):
+        raise ValueError(f"pose must have shape [..., 4, 4], got {pose.shape}")
+    return pose
+
+
+def _width(width, pose: jax.Array) -> jax.Array:
+    width = jnp.asarray(width, pose.dtype if jnp.issubdtype(pose.dtype, jnp.floating) else jnp.float32)
+    try:
+        np.broadcast_shapes(width.shape, pose.shape[:-2])
+    except ValueError:
+        raise ValueError(
+            f"width of shape {width.shape} does not broadcast with the pose batch {pose.shape[:-2]} "
+            f"(pose has shape {pose.shape})"
+        ) from None
+    return width
+
+
+def _mask(mask, points: jax.Array) -> jax.Array:
+    if mask is None:
+        return jnp.ones(points.shape[:-1], bool)
+    mask = jnp.asarray(mask, bool)
+    n = points.shape[-2]
+    if mask.ndim < 1 or mask.shape[-1] != n:
+        raise ValueError(f"mask must have shape [..., N] with N={n} (points {points.shape}), got {mask.shape}")
+    try:
+        np.broadcast_shapes(mask.shape, points.shape[:-1])
+    except ValueError:
+        raise ValueError(f"mask of shape {mask.shape} does not broadcast with points {points.shape}") from None
+    return mask
+
+
+def width_in_range(width: jax.Array, spec: GripperSpec) -> jax.Array:
+    """Whether each width lies in [0, spec.max_opening] (False for NaN): [...] -> bool[...]."""
+    width = jnp.asarray(width)
+    return (width >= 0.0) & (width <= spec.max_opening)
+
+
+def check_width(width, spec: GripperSpec) -> np.ndarray:
+    """Host-side check that every width is finite and within [0, max_opening]; returns it as float64.
+
+    Raises ValueError naming the first offending value and its index.
+    """
+    w = np.asarray(width, np.float64)
+    bad = ~((w >= 0.0) & (w <= spec.max_opening))
+    if bad.any():
+        index = tuple(int(i) for i in np.argwhere(bad)[0])
+        value = w[index] if w.ndim else w
+        raise ValueError(
+            f"gripper width must be within [0, {spec.max_opening}] m (spec.max_opening); "
+            f"got {float(value)} at index {index} ({int(bad.sum())} of {w.size} out of range)"
+        )
+    return w
+
+
+# ---------------------------------------------------------------------------------------------
+# Frames and poses.
+
+
+def to_world(points_local: jax.Array, pose: jax.Array) -> jax.Array:
+    """Gripper-frame points[..., N, 3] -> world [..., N, 3] (p_w = R p_g + t)."""
+    points_local, pose = _points(points_local, "points_local"), _pose(pose)
+    rotation, translation = pose[..., :3, :3], pose[..., :3, 3]
+    return jnp.einsum("...ij,...nj->...ni", rotation, points_local) + translation[..., None, :]
+
+
+def to_gripper_frame(points_world: jax.Array, pose: jax.Array) -> jax.Array:
+    """World points[..., N, 3] -> gripper-frame [..., N, 3] (p_g = R^T (p_w - t))."""
+    points_world, pose = _points(points_world, "points_world"), _pose(pose)
+    rotation, translation = pose[..., :3, :3], pose[..., :3, 3]
+    return jnp.einsum("...ni,...ij->...nj", points_world - translation[..., None, :], rotation)
+
+
+def deepened_pose(pose: jax.Array, spec: GripperSpec) -> jax.Array:
+    """The pose moved by spec.deepen along its own approach axis (+z): [..., 4, 4] -> [..., 4, 4]."""
+    pose = _pose(pose)
+    return pose.at[..., :3, 3].add(spec.deepen * pose[..., :3, 2])
+
+
+def rotated_about_approach(pose: jax.Array, angle: jax.Array | float) -> jax.Array:
+    """The pose turned by `angle` radians about its own z axis through its origin.
+
+    pose[..., 4, 4], angle broadcastable to the pose batch -> [..., 4, 4].
+    """
+    pose = _pose(pose)
+    rotation = pose[..., :3, :3] @ rot_z(jnp.asarray(angle, pose.dtype))
+    pose = jnp.broadcast_to(pose, (*rotation.shape[:-2], 4, 4))  # the angles may add batch axes
+    return pose.at[..., :3, :3].set(rotation)
+
+
+def refined_pose(pose: jax.Array, variant: jax.Array | int, spec: GripperSpec) -> jax.Array:
+    """Refinement `variant` of a grasp pose: deepen, then rotate by spec.refine_angles_deg[variant].
+
+    With the default spec variant 0 is -15 deg, 1 is 0 deg (deepened only), 2 is +15 deg.
+    pose[..., 4, 4], variant int or int array broadcastable to the pose batch -> [..., 4, 4].
+    """
+    if isinstance(variant, (int, np.integer)) and not 0 <= variant < spec.num_refinements:
+        raise ValueError(f"variant must be in [0, {spec.num_refinements}), got {variant}")
+    angles = jnp.deg2rad(jnp.asarray(spec.refine_angles_deg, jnp.float32))
+    return rotated_about_approach(deepened_pose(pose, spec), angles[jnp.asarray(variant)])
+
+
+def refined_poses(pose: jax.Array, spec: GripperSpec) -> jax.Array:
+    """All refinement variants: pose[..., 4, 4] -> [..., K, 4, 4] with K = spec.num_refinements."""
+    deep = deepened_pose(pose, spec)[..., None, :, :]
+    angles = jnp.deg2rad(jnp.asarray(spec.refine_angles_deg, deep.dtype))
+    return rotated_about_approach(deep, angles)
+
+
+def enlarged_region_poses(pose: jax.Array, spec: GripperSpec) -> jax.Array:
+    """Poses whose closing regions make up the enlarged region (paper Sec. IV-C).
+
+    pose[..., 4, 4] -> [..., 1 + K, 4, 4]: index 0 is the initial pose and index 1 + v is
+    `refined_pose(pose, v, spec)` (default: initial, deepened -15 deg, deepened, deepened +15 deg).
+    """
+    pose = _pose(pose)
+    return jnp.concatenate([pose[..., None, :, :], refined_poses(pose, spec)], axis=-3)
+
+
+# ---------------------------------------------------------------------------------------------
+# Regions and boxes.
+
+
+def closing_region(spec: GripperSpec, width: jax.Array | float) -> tuple[jax.Array, jax.Array]:
+    """The closing region in the gripper frame: width[...] -> (centre[..., 3], half_extents[..., 3])."""
+    width = jnp.asarray(width, jnp.float32)
+    half_w = 0.5 * width
+    zero = jnp.zeros_like(half_w)
+    half_l = jnp.full_like(half_w, 0.5 * spec.finger_length)
+    centre = jnp.stack([zero, zero, half_l], -1)
+    half = jnp.stack([half_w, jnp.full_like(half_w, 0.5 * spec.finger_width), half_l], -1)
+    return centre, half
+
+
+def _posed_box(pose: jax.Array, centre_local: jax.Array, half_extents: jax.Array) -> Box:
+    """Boxes given in the gripper frame (centre_local, half_extents [..., 3]) placed by pose[..., 4, 4]."""
+    rotation, translation = pose[..., :3, :3], pose[..., :3, 3]
+    centre = jnp.einsum("...ij,...j->...i", rotation, centre_local) + translation
+    batch = jnp.broadcast_shapes(centre.shape[:-1], half_extents.shape[:-1])
+    return Box(
+        jnp.broadcast_to(centre, (*batch, 3)),
+        jnp.broadcast_to(rotation, (*batch, 3, 3)),
+        jnp.broadcast_to(half_extents, (*batch, 3)),
+    )
+
+
+def closing_region_box(pose: jax.Array, width: jax.Array | float, spec: GripperSpec) -> Box:
+    """The closing region of grasps (pose[..., 4, 4], width[...]) as world-frame boxes [...]."""
+    pose = _pose(pose)
+    centre, half = closing_region(spec, _width(width, pose))
+    return _posed_box(pose, centre.astype(pose.dtype), half.astype(pose.dtype))
+
+
+def gripper_boxes(pose: jax.Array, width: jax.Array | float, spec: GripperSpec) -> Box:
+    """The gripper's collision boxes in the world frame: Box with batch [..., 3].
+
+    Along the new axis: left finger (-x), right finger (+x), palm. The fingers sit just outside the
+    closing region, centred at x = -+(width/2 + finger_thickness/2), 0 <= z <= finger_length; the
+    palm lies behind the origin, -palm_size[2] <= z <= 0.
+    """
+    pose = _pose(pose)
+    width = _width(width, pose)
+    finger_x = 0.5 * width + 0.5 * spec.finger_thickness
+    zero, one = jnp.zeros_like(finger_x), jnp.ones_like(finger_x)
+    mid_z = 0.5 * spec.finger_length * one
+    palm_z = -0.5 * spec.palm_size[2] * one
+    centres = jnp.stack(
+        [
+            jnp.stack([-finger_x, zero, mid_z], -1),
+            jnp.stack([finger_x, zero, mid_z], -1),
+            jnp.stack([zero, zero, palm_z], -1),
+        ],
+        -2,
+    )
+    finger_half = [0.5 * spec.finger_thickness, 0.5 * spec.finger_width, 0.5 * spec.finger_length]
+    palm_half = [0.5 * s for s in spec.palm_size]
+    halves = jnp.asarray([finger_half, finger_half, palm_half], pose.dtype)
+    return _posed_box(pose[..., None, :, :], centres, halves)
+
+
+def points_in_box(points: jax.Array, box: Box, margin: float = 0.0) -> jax.Array:
+    """Whether points[..., N, 3] lie in the closed boxes [...] grown by `margin` -> bool[..., N]."""
+    points = _points(points)
+    local = jnp.einsum("...ni,...ij->...nj", points - box.centre[..., None, :], box.rotation)
+    return jnp.all(jnp.abs(local) <= box.half_extents[..., None, :] + margin, axis=-1)
+
+
+def points_in_closing_region(
+    points: jax.Array, pose: jax.Array, width: jax.Array | float, spec: GripperSpec
+) -> jax.Array:
+    """Whether world points[..., N, 3] lie in the closing region of (pose[..., 4, 4], width[...]).
+
+    Batch axes broadcast, e.g. one cloud [N, 3] against B grasps gives bool[B, N].
+    """
+    points = _points(points)
+    return points_in_box(points, closing_region_box(pose, width, spec))
+
+
+def points_in_enlarged_region(
+    points: jax.Array, pose: jax.Array, width: jax.Array | float, spec: GripperSpec
+) -> jax.Array:
+    """Whether world points[..., N, 3] lie in the enlarged region of (pose[..., 4, 4], width[...]).
+
+    The enlarged region is the union of the closing regions of `enlarged_region_poses`; -> bool[..., N].
+    """
+    points, pose = _points(points), _pose(pose)
+    width = _width(width, pose)
+    boxes = closing_region_box(enlarged_region_poses(pose, spec), width[..., None], spec)
+    return jnp.any(points_in_box(points[..., None, :, :], boxes), axis=-2)
+
+
+def collides_with_points(
+    points: jax.Array,
+    mask: jax.Array | None,
+    pose: jax.Array,
+    width: jax.Array | float,
+    spec: GripperSpec,
+    margin: float = 0.0,
+) -> jax.Array:
+    """Whether any masked point[..., N, 3] lies in a finger or the palm (boxes grown by margin) -> bool[...].
+
+    mask[..., N] marks the valid points (None: all); points between the fingers do not collide.
+    """
+    points = _points(points)
+    mask = _mask(mask, points)
+    pose = _pose(pose)
+    boxes = gripper_boxes(pose, width, spec)
+    inside = jnp.any(points_in_box(points[..., None, :, :], boxes, margin), axis=-2)
+    return jnp.any(inside & mask, axis=-1)

@@ -1,0 +1,73 @@
+"""The `sgjax` command line, run in-process and as a real subprocess."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import trimesh
+
+from sgjax.cli import main
+
+
+def test_example_then_fit_json_and_mesh(tmp_path, capsys):
+    cloud = tmp_path / "box.npy"
+    assert main(["example", str(cloud), "--shape", "box"]) == 0
+    assert np.load(cloud).shape == (800, 3)
+    capsys.readouterr()
+    mesh_path = tmp_path / "fit.ply"
+    assert main(["fit", str(cloud), "--json", "--mesh", str(mesh_path)]) == 0
+    record = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert set(record) == {"file", "scale", "epsilon", "rotation", "translation", "inlier_ratio", "valid"}
+    assert record["valid"] and len(record["scale"]) == 3 and np.array(record["rotation"]).shape == (3, 3)
+    # the example box has semi-axes (0.04, 0.03, 0.06)
+    np.testing.assert_allclose(sorted(record["scale"]), [0.03, 0.04, 0.06], rtol=0.1)
+    mesh = trimesh.load(mesh_path)
+    assert mesh.is_watertight and len(mesh.faces) > 100
+
+
+def test_reads_ply_and_pcd(tmp_path, capsys):
+    cloud = tmp_path / "c.npy"
+    main(["example", str(cloud), "--shape", "ellipsoid"])
+    pts = np.load(cloud).astype(np.float64)
+    trimesh.PointCloud(pts).export(tmp_path / "c.ply")
+    o3d = pytest.importorskip("open3d", reason="open3d needs libusb-1.0 (apt-get install libusb-1.0-0)")
+
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    o3d.io.write_point_cloud(str(tmp_path / "c.pcd"), pcd)
+    capsys.readouterr()
+    assert main(["fit", str(tmp_path / "c.ply"), str(tmp_path / "c.pcd"), "--json"]) == 0
+    records = [json.loads(line) for line in capsys.readouterr().out.strip().splitlines()]
+    assert len(records) == 2
+    np.testing.assert_allclose(records[0]["scale"], records[1]["scale"], rtol=1e-3)
+
+
+@pytest.mark.parametrize(
+    "name, content, message",
+    [
+        ("missing.npy", None, "no such file"),
+        ("bad.npy", b"not a numpy file", "cannot read"),
+        ("bad.pcd", b"garbage", "not a PCD file"),
+        ("cloud.xyz", b"1 2 3", "unsupported extension"),
+        ("flat.npy", "flat", "coplanar"),
+        ("few.npy", "few", "too few points"),
+    ],
+)
+def test_bad_files_give_a_message_and_a_nonzero_exit(tmp_path, capsys, name, content, message):
+    path = tmp_path / name
+    if content == "flat":
+        np.save(path, np.c_[np.random.default_rng(0).normal(size=(50, 2)), np.zeros(50)])
+    elif content == "few":
+        np.save(path, np.random.default_rng(0).normal(size=(5, 3)))
+    elif content is not None:
+        path.write_bytes(content)
+    assert main(["fit", str(path)]) == 2
+    assert message in capsys.readouterr().err
+
+
+def test_console_entry_point_runs_as_a_process(tmp_path):
+    out = subprocess.run(
+        [sys.executable, "-m", "sgjax.cli", "fit", str(tmp_path / "nothing.npy")], capture_output=True, text=True
+    )
+    assert out.returncode == 2 and "no such file" in out.stderr

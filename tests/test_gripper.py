@@ -1,0 +1,275 @@
+"""Geometry of the gripper spec: closing/enlarged regions, refinement poses, collision boxes."""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from sgjax.gripper import (
+    GripperSpec,
+    check_width,
+    closing_region,
+    collides_with_points,
+    deepened_pose,
+    enlarged_region_poses,
+    gripper_boxes,
+    points_in_closing_region,
+    points_in_enlarged_region,
+    refined_pose,
+    refined_poses,
+    to_gripper_frame,
+    to_world,
+    width_in_range,
+)
+from sgjax.rotations import random_rotation
+from sgjax.superquadric import pose_matrix
+
+SPEC = GripperSpec()
+WIDTH = 0.06  # closing region |x| <= 0.03, |y| <= 0.01, 0 <= z <= 0.05
+
+
+def random_pose(seed: int, shape: tuple[int, ...] = ()) -> jax.Array:
+    k1, k2 = jax.random.split(jax.random.PRNGKey(seed))
+    rotation = random_rotation(k1, shape)
+    translation = jax.random.uniform(k2, (*shape, 3), minval=-0.5, maxval=0.5)
+    return pose_matrix(rotation, translation)
+
+
+def rot_z_np(deg: float) -> np.ndarray:
+    c, s = np.cos(np.deg2rad(deg)), np.sin(np.deg2rad(deg))
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+# Gripper-frame points 3 mm inside / outside each face of the closing region (WIDTH = 0.06).
+INSIDE = np.array(
+    [
+        [0.0, 0.0, 0.025],
+        [0.027, 0.0, 0.025],
+        [-0.027, 0.0, 0.025],
+        [0.0, 0.007, 0.025],
+        [0.0, -0.007, 0.025],
+        [0.0, 0.0, 0.003],
+        [0.0, 0.0, 0.047],
+        [0.027, -0.007, 0.047],
+    ]
+)
+OUTSIDE = np.array(
+    [
+        [0.033, 0.0, 0.025],
+        [-0.033, 0.0, 0.025],
+        [0.0, 0.013, 0.025],
+        [0.0, -0.013, 0.025],
+        [0.0, 0.0, -0.003],
+        [0.0, 0.0, 0.053],
+        [0.033, 0.013, 0.053],
+    ]
+)
+
+
+def local_grid(n: int = 4000, seed: int = 0) -> np.ndarray:
+    """Uniform gripper-frame points in a box around the gripper's closing and enlarged regions."""
+    rng = np.random.default_rng(seed)
+    return rng.uniform([-0.05, -0.03, -0.01], [0.05, 0.03, 0.07], (n, 3))
+
+
+def test_closing_region_box():
+    centre, half = closing_region(SPEC, WIDTH)
+    np.testing.assert_allclose(centre, [0.0, 0.0, 0.025], atol=1e-7)
+    np.testing.assert_allclose(half, [0.03, 0.01, 0.025], atol=1e-7)
+    centre, half = closing_region(SPEC, jnp.array([0.02, 0.08]))
+    assert centre.shape == half.shape == (2, 3)
+    np.testing.assert_allclose(half[:, 0], [0.01, 0.04], atol=1e-7)
+
+
+@pytest.mark.parametrize("seed", [None, 1, 2])
+def test_points_in_closing_region_exact(seed):
+    pose = jnp.eye(4) if seed is None else random_pose(seed)
+    points = to_world(jnp.asarray(np.concatenate([INSIDE, OUTSIDE]), jnp.float32), pose)
+    expected = np.r_[np.ones(len(INSIDE), bool), np.zeros(len(OUTSIDE), bool)]
+    np.testing.assert_array_equal(points_in_closing_region(points, pose, WIDTH, SPEC), expected)
+
+
+def test_classification_invariant_under_rigid_motion():
+    pose = random_pose(3)
+    points = to_world(jnp.asarray(local_grid(2000), jnp.float32), pose)
+    before = points_in_closing_region(points, pose, WIDTH, SPEC)
+    before_enlarged = points_in_enlarged_region(points, pose, WIDTH, SPEC)
+    motion = random_pose(5)
+    moved_points = to_world(points, motion)
+    moved_pose = motion @ pose
+    assert 0 < int(before.sum()) < len(points)
+    np.testing.assert_array_equal(points_in_closing_region(moved_points, moved_pose, WIDTH, SPEC), before)
+    np.testing.assert_array_equal(points_in_enlarged_region(moved_points, moved_pose, WIDTH, SPEC), before_enlarged)
+
+
+def test_frame_round_trip():
+    pose = random_pose(6)
+    local = jnp.asarray(local_grid(100), jnp.float32)
+    np.testing.assert_allclose(to_gripper_frame(to_world(local, pose), pose), local, atol=1e-6)
+    # The pose's columns are the gripper axes: a point on +z lies along the approach direction.
+    world = to_world(jnp.array([[0.0, 0.0, 0.1]]), pose)
+    np.testing.assert_allclose(world[0], pose[:3, 3] + 0.1 * pose[:3, 2], atol=1e-6)
+
+
+def test_refined_poses_deepen_then_rotate_about_approach():
+    pose = random_pose(7)
+    deep = deepened_pose(pose, SPEC)
+    np.testing.assert_allclose(deep[:3, :3], pose[:3, :3], atol=1e-7)
+    np.testing.assert_allclose(deep[:3, 3], pose[:3, 3] + 0.008 * pose[:3, 2], atol=1e-6)
+    variants = refined_poses(pose, SPEC)
+    assert variants.shape == (3, 4, 4)
+    for v, deg in enumerate([-15.0, 0.0, 15.0]):
+        one = refined_pose(pose, v, SPEC)
+        np.testing.assert_allclose(one, variants[v], atol=1e-6)
+        # Same origin as the deepened pose, rotated about its z axis by exactly deg.
+        np.testing.assert_allclose(one[:3, 3], deep[:3, 3], atol=1e-6)
+        np.testing.assert_allclose(one[3], [0, 0, 0, 1])
+        relative = np.asarray(deep[:3, :3]).T @ np.asarray(one[:3, :3])
+        np.testing.assert_allclose(relative, rot_z_np(deg), atol=1e-5)
+        np.testing.assert_allclose(one[:3, 2], pose[:3, 2], atol=1e-6)  # approach axis unchanged
+        angle = np.degrees(np.arccos(np.clip((np.trace(relative) - 1) / 2, -1, 1)))
+        assert abs(angle - abs(deg)) < 1e-2
+    enlarged = enlarged_region_poses(pose, SPEC)
+    assert enlarged.shape == (4, 4, 4)
+    np.testing.assert_allclose(enlarged[0], pose)
+    np.testing.assert_allclose(enlarged[1:], variants)
+    # A traced variant index gives the same poses as the Python int.
+    traced = jax.jit(refined_pose, static_argnames="spec")(pose, jnp.array(2), spec=SPEC)
+    np.testing.assert_allclose(traced, variants[2], atol=1e-6)
+
+
+def test_enlarged_region_is_the_union_and_strictly_larger():
+    pose = random_pose(8)
+    points = to_world(jnp.asarray(local_grid(6000, seed=1), jnp.float32), pose)
+    enlarged = np.asarray(points_in_enlarged_region(points, pose, WIDTH, SPEC))
+    parts = [np.asarray(points_in_closing_region(points, p, WIDTH, SPEC)) for p in enlarged_region_poses(pose, SPEC)]
+    for part in parts:
+        assert part.any()
+        assert not (part & ~enlarged).any(), "a closing region pokes out of the enlarged region"
+        assert enlarged.sum() > part.sum()
+    np.testing.assert_array_equal(enlarged, np.any(parts, axis=0))
+
+    # Beyond the fingertips but within the deepened region; and beside the fingers, reached only by +15 deg.
+    beyond_tip = np.array([0.0, 0.0, SPEC.finger_length + 0.004])
+    beside = np.array([0.025, 0.015, 0.03])
+    special = to_world(jnp.asarray(np.stack([beyond_tip, beside]), jnp.float32), pose)
+    np.testing.assert_array_equal(points_in_closing_region(special, pose, WIDTH, SPEC), [False, False])
+    np.testing.assert_array_equal(points_in_enlarged_region(special, pose, WIDTH, SPEC), [True, True])
+    per_variant = [np.asarray(points_in_closing_region(special, refined_pose(pose, v, SPEC), WIDTH, SPEC)) for v in range(3)]
+    np.testing.assert_array_equal(np.stack(per_variant), [[True, False], [True, False], [True, True]])
+
+
+def test_gripper_boxes_layout():
+    boxes = gripper_boxes(jnp.eye(4), WIDTH, SPEC)
+    assert boxes.centre.shape == (3, 3) and boxes.rotation.shape == (3, 3, 3) and boxes.half_extents.shape == (3, 3)
+    np.testing.assert_allclose(boxes.centre, [[-0.035, 0, 0.025], [0.035, 0, 0.025], [0, 0, -0.01]], atol=1e-7)
+    np.testing.assert_allclose(boxes.half_extents, [[0.005, 0.01, 0.025], [0.005, 0.01, 0.025], [0.05, 0.015, 0.01]])
+    pose = random_pose(9)
+    posed = gripper_boxes(pose, WIDTH, SPEC)
+    np.testing.assert_allclose(posed.rotation, np.broadcast_to(pose[:3, :3], (3, 3, 3)), atol=1e-7)
+    np.testing.assert_allclose(posed.centre, to_world(boxes.centre, pose), atol=1e-6)
+
+
+@pytest.mark.parametrize("seed", [None, 10])
+def test_collision_with_fingers_and_palm(seed):
+    pose = jnp.eye(4) if seed is None else random_pose(seed)
+    local = {
+        "left_finger": [-0.035, 0.0, 0.025],
+        "right_finger": [0.035, 0.008, 0.045],
+        "palm": [0.0, 0.0, -0.01],
+        "between_fingers": [0.0, 0.0, 0.025],
+        "near_inner_face": [0.027, 0.0, 0.025],
+        "beyond_tips": [0.035, 0.0, 0.053],
+        "outside_outer_face": [-0.042, 0.0, 0.025],
+    }
+    world = {k: to_world(jnp.array([v], jnp.float32), pose) for k, v in local.items()}
+
+    def hits(name, margin=0.0, mask=None):
+        return bool(collides_with_points(world[name], mask, pose, WIDTH, SPEC, margin))
+
+    assert hits("left_finger") and hits("right_finger") and hits("palm")
+    assert not hits("between_fingers") and not hits("near_inner_face") and not hits("beyond_tips")
+    assert not hits("outside_outer_face") and hits("outside_outer_face", margin=0.003)
+    assert not hits("left_finger", mask=jnp.array([False]))
+    cloud = jnp.concatenate([world["between_fingers"], world["near_inner_face"], world["left_finger"]])
+    assert bool(collides_with_points(cloud, jnp.array([True, True, True]), pose, WIDTH, SPEC))
+    assert not bool(collides_with_points(cloud, jnp.array([True, True, False]), pose, WIDTH, SPEC))
+
+
+def test_vmap_over_64_grasps_matches_loop():
+    batch, n = 64, 96
+    poses = random_pose(11, (batch,))
+    widths = jax.random.uniform(jax.random.PRNGKey(12), (batch,), minval=0.01, maxval=SPEC.max_opening)
+    # Even grasps get points strictly between the fingers, odd ones points reaching into the fingers.
+    unit = np.random.default_rng(13).uniform([-1.0, -1.0, 0.0], [1.0, 1.0, 1.0], (batch, n, 3))
+    reach = np.where(np.arange(batch) % 2 == 0, 0.95, 1.5)
+    scale = np.stack([0.5 * np.asarray(widths) * reach, np.full(batch, 0.02), np.full(batch, 0.07)], -1)
+    points = to_world(jnp.asarray(unit * scale[:, None, :], jnp.float32), poses)
+    masks = jnp.asarray(np.random.default_rng(14).random((batch, n)) < 0.5)
+
+    closing = jax.jit(functools.partial(points_in_closing_region, spec=SPEC))
+    enlarged = jax.jit(functools.partial(points_in_enlarged_region, spec=SPEC))
+    collide = jax.jit(functools.partial(collides_with_points, spec=SPEC))
+    got_closing = jax.vmap(closing)(points, poses, widths)
+    got_enlarged = jax.vmap(enlarged)(points, poses, widths)
+    got_collide = jax.vmap(collide)(points, masks, poses, widths)
+    assert got_closing.shape == got_enlarged.shape == (batch, n) and got_collide.shape == (batch,)
+    for i in range(batch):
+        np.testing.assert_array_equal(got_closing[i], closing(points[i], poses[i], widths[i]))
+        np.testing.assert_array_equal(got_enlarged[i], enlarged(points[i], poses[i], widths[i]))
+        assert bool(got_collide[i]) == bool(collide(points[i], masks[i], poses[i], widths[i]))
+    # Plain broadcasting over the batch axis agrees with vmap too.
+    np.testing.assert_array_equal(points_in_closing_region(points, poses, widths, SPEC), got_closing)
+    np.testing.assert_array_equal(collides_with_points(points, masks, poses, widths, SPEC), got_collide)
+    assert got_closing.any() and not got_closing.all()
+    assert not got_collide[::2].any() and got_collide[1::2].any()
+    # One shared cloud against all grasps broadcasts to [B, N].
+    assert points_in_enlarged_region(points[0], poses, widths, SPEC).shape == (batch, n)
+
+
+def test_spec_is_hashable_static_argument():
+    assert hash(GripperSpec()) == hash(GripperSpec())
+    wide = GripperSpec(finger_width=0.04, palm_size=[0.1, 0.05, 0.02])
+    assert isinstance(wide.palm_size, tuple)
+    fn = jax.jit(points_in_closing_region, static_argnames="spec")
+    point = jnp.array([[0.0, 0.015, 0.025]])
+    assert not bool(fn(point, jnp.eye(4), WIDTH, spec=SPEC)[0])
+    assert bool(fn(point, jnp.eye(4), WIDTH, spec=wide)[0])
+
+
+def test_width_checks():
+    np.testing.assert_array_equal(width_in_range(jnp.array([-0.001, 0.0, 0.05, 0.08, 0.081, jnp.nan]), SPEC),
+                                  [False, True, True, True, False, False])
+    np.testing.assert_allclose(check_width([0.0, 0.04, 0.08], SPEC), [0.0, 0.04, 0.08])
+    with pytest.raises(ValueError, match=r"within \[0, 0.08\].*0.09 at index \(1,\)"):
+        check_width([0.02, 0.09], SPEC)
+    with pytest.raises(ValueError, match="within"):
+        check_width(-0.01, SPEC)
+    with pytest.raises(ValueError, match="nan"):
+        check_width([np.nan], SPEC)
+
+
+def test_bad_shapes_raise_clear_errors():
+    points, pose = jnp.zeros((5, 3)), jnp.eye(4)
+    with pytest.raises(ValueError, match=r"points must have shape \[\.\.\., N, 3\], got \(5, 2\)"):
+        points_in_closing_region(jnp.zeros((5, 2)), pose, WIDTH, SPEC)
+    with pytest.raises(ValueError, match=r"points must have shape"):
+        points_in_enlarged_region(jnp.zeros(3), pose, WIDTH, SPEC)
+    with pytest.raises(ValueError, match=r"pose must have shape \[\.\.\., 4, 4\], got \(3, 4\)"):
+        points_in_closing_region(points, jnp.zeros((3, 4)), WIDTH, SPEC)
+    with pytest.raises(ValueError, match=r"width of shape \(3,\) does not broadcast"):
+        points_in_closing_region(points, jnp.broadcast_to(pose, (2, 4, 4)), jnp.zeros(3), SPEC)
+    with pytest.raises(ValueError, match=r"mask must have shape \[\.\.\., N\] with N=5"):
+        collides_with_points(points, jnp.ones(4, bool), pose, WIDTH, SPEC)
+    with pytest.raises(ValueError, match=r"pose must have shape"):
+        jax.jit(enlarged_region_poses, static_argnames="spec")(jnp.eye(3), spec=SPEC)
+    with pytest.raises(ValueError, match=r"variant must be in \[0, 3\)"):
+        refined_pose(pose, 3, SPEC)
+    with pytest.raises(ValueError, match="finger_length must be positive"):
+        GripperSpec(finger_length=0.0)
+    with pytest.raises(ValueError, match="narrower than the open fingers"):
+        GripperSpec(palm_size=(0.05, 0.03, 0.02))

@@ -1,0 +1,1 @@
+"""Labelling (grasp trials in simulation) and E-RNet training. Imports `sgjax` and `envs`."""
