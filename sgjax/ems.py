@@ -104,7 +104,6 @@ class _Cloud:
     t_max: jax.Array  # []
 
 
-_N_PARAMS = 11  # eps (2), log a (3), rotation increment (3), translation (3)
 _LOG_A_MIN = float(np.log(1e-3))
 
 
