@@ -12,6 +12,8 @@ import os
 import sys
 from typing import Sequence
 
+from sgjax.files import atomic_write
+
 EXAMPLE_SHAPES = {
     # name: (semi-axes in metres, (eps1, eps2))
     "box": ((0.04, 0.03, 0.06), (0.1, 0.1)),
@@ -42,10 +44,8 @@ def _cmd_example(args: argparse.Namespace) -> int:
     cloud = synthetic.single_view_cloud(
         sq, args.points, noise_std=args.noise, outlier_ratio=args.outliers, seed=rng
     )
-    out = args.out
-    tmp = f"{out}.tmp.npy"
-    np.save(tmp, cloud.astype(np.float32))
-    os.replace(tmp, out)  # atomic: a reader never sees half a file
+    out = args.out if args.out.endswith(".npy") else f"{args.out}.npy"  # as np.save would name it
+    atomic_write(out, lambda tmp: np.save(tmp, cloud.astype(np.float32)))
     truth = {"scale": list(scale), "epsilon": list(eps), "rotation": rot.tolist(), "translation": np.asarray(sq.translation).tolist()}
     print(f"wrote {out}: single-view cloud of a {args.shape}, {len(cloud)} points")
     print("truth:", json.dumps({k: np.round(v, 4).tolist() for k, v in truth.items()}))
@@ -94,9 +94,7 @@ def _cmd_fit(args: argparse.Namespace) -> int:
                 stem, ext = os.path.splitext(args.mesh)
                 out = f"{stem}_{os.path.splitext(os.path.basename(name))[0]}{ext or '.ply'}"
             mesh = to_mesh(r.superquadric)
-            tmp = f"{out}.tmp{os.path.splitext(out)[1]}"
-            mesh.export(tmp)
-            os.replace(tmp, out)
+            atomic_write(out, mesh.export)
             if not args.json:
                 print(f"  fitted surface written to {out}")
     return code

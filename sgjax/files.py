@@ -1,0 +1,23 @@
+"""Atomic file output: a reader (or a resumed job) never sees half a file."""
+
+from __future__ import annotations
+
+import os
+from typing import Callable
+
+
+def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> None:
+    """Call `write(tmp_path)` on a temporary file beside `path`, then rename it onto `path`.
+
+    The temporary name keeps the extension, so writers that choose a format by it (numpy, trimesh)
+    behave as for `path`; on failure the temporary file is removed and `path` is left untouched.
+    """
+    path = os.fspath(path)
+    stem, ext = os.path.splitext(path)
+    tmp = f"{stem}.tmp-{os.getpid()}{ext}"
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
