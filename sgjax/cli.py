@@ -16,8 +16,8 @@ from sgjax.files import atomic_write
 
 EXAMPLE_SHAPES = {
     # name: (semi-axes in metres, (eps1, eps2))
-    "box": ((0.04, 0.03, 0.06), (0.1, 0.1)),
-    "cylinder": ((0.035, 0.035, 0.07), (0.1, 1.0)),
+    "box": ((0.04, 0.02, 0.06), (0.1, 0.1)),  # graspable across its 4 cm side with an 8 cm stroke
+    "cylinder": ((0.025, 0.025, 0.06), (0.1, 1.0)),
     "ellipsoid": ((0.05, 0.03, 0.04), (1.0, 1.0)),
     "rounded-box": ((0.06, 0.025, 0.03), (0.4, 0.5)),
 }
@@ -100,6 +100,143 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     return code
 
 
+def _object_set_name(args: argparse.Namespace) -> str:
+    return args.objects if args.objects is not None else args.set
+
+
+def _cmd_objects_prepare(args: argparse.Namespace) -> int:
+    from envs import objects
+
+    name = _object_set_name(args)
+    try:
+        report = objects.prepare_object_set(
+            name, workers=args.workers, progress=not args.quiet, retry_failed=args.retry_failed
+        )
+    except ValueError as exc:
+        return _fail(str(exc))
+    hulls = [len(a.hull_paths) for a in report.assets]
+    print(
+        f"object set {name!r}: {len(report.assets)} ready ({len(report.prepared)} prepared now, "
+        f"{len(report.cached)} cached), {len(report.failures)} skipped"
+    )
+    if hulls:
+        print(f"  convex pieces per object: mean {sum(hulls) / len(hulls):.1f}, max {max(hulls)}")
+    for failure in report.failures:
+        print(f"  skipped {failure.name}: {failure.reason}{' (recorded earlier)' if failure.cached else ''}")
+    if report.failures:
+        print(f"  failures recorded in {report.report_path}; --retry-failed tries them again")
+    return 1 if report.failures else 0
+
+
+def _cmd_objects_list(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    from envs import objects
+
+    name = _object_set_name(args)
+    try:  # listing never prepares (slow); the tiny set is cheap enough to build on the spot
+        report = objects.prepare_object_set(name, cached_only=name != "tiny")
+    except ValueError as exc:
+        return _fail(str(exc))
+    for a in report.assets:
+        if args.json:
+            print(json.dumps(dataclasses.asdict(a)))
+        else:
+            size = " x ".join(f"{100 * e:5.1f}" for e in a.extents)
+            print(f"{a.name:40s} {size} cm  {a.mass:6.3f} kg  {len(a.hull_paths):2d} hull(s)  [{a.source}]")
+    if report.missing:
+        print(
+            f"{len(report.missing)} object(s) of {name!r} not prepared yet: run `sgjax objects prepare "
+            f"{'--objects' if args.objects is not None else '--set'} {name}`",
+            file=sys.stderr,
+        )
+    return 0
+
+
+def _cmd_train(args: argparse.Namespace) -> int:
+    from sgjax.ernet import ERNetConfig
+    from train import dataset, trainer
+
+    if args.synthetic:
+        os.makedirs(args.data, exist_ok=True)
+        if dataset.shard_paths(args.data):
+            return _fail(f"--synthetic: {args.data} already holds shards")
+        samples = dataset.synthetic_samples(args.synthetic, args.seed)
+        print(f"wrote {args.synthetic} synthetic samples to {dataset.write_shard(os.path.join(args.data, 'synthetic_000'), samples)}")
+    config = trainer.TrainConfig(
+        epochs=args.epochs,
+        batch_size=args.batch_size,
+        lr=args.lr,
+        weight_decay=args.weight_decay,
+        decoupled_weight_decay=args.decoupled_weight_decay,
+        seed=args.seed,
+        held_out_fraction=args.held_out,
+        model=ERNetConfig.paper() if args.model == "paper" else ERNetConfig.light(),
+    )
+    try:
+        result = trainer.train(args.data, args.out, config, progress=not args.quiet)
+    except (dataset.DatasetError, ValueError) as exc:
+        return _fail(str(exc))
+    except KeyboardInterrupt:
+        print(f"\ninterrupted: rerun the same command to resume after the last finished epoch in {args.out}", file=sys.stderr)
+        return 130
+    print(f"done: {len(result.history)} epochs; checkpoints, metrics.json/.csv and curves.png in {result.run_dir}")
+    return 0
+
+
+def _cmd_build_db(args: argparse.Namespace) -> int:
+    from sgjax.primitive_db import DBConfig, build_database, default_path, load_database_file, save_database
+
+    cfg = DBConfig.small() if args.small else DBConfig()
+    path = args.out or default_path(cfg)
+    if os.path.isfile(path) and not args.force:
+        db = load_database_file(path)
+        print(f"primitive database already built: {path}")
+    else:
+        db = build_database(cfg, workers=args.workers)
+        save_database(db, path)
+        print(f"wrote {path}")
+    print(json.dumps(db.summary()))
+    return 0
+
+
+def _cmd_candidates(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from sgjax.pointcloud import CloudError, load_cloud
+    from sgjax.primitive_db import DBConfig, load_database, load_database_file
+    from sgjax.stage1 import Stage1
+
+    try:
+        cloud = load_cloud(args.cloud)
+        scene = load_cloud(args.scene) if args.scene else None
+        db = load_database_file(args.db) if args.db else load_database(DBConfig.small() if args.small_db else DBConfig())
+        viewpoint = None if args.viewpoint is None else np.asarray(args.viewpoint, float)
+        cands = Stage1(db)(cloud, scene, viewpoint=viewpoint, seed=args.seed)
+    except (CloudError, ValueError, FileNotFoundError) as exc:
+        return _fail(str(exc))
+    if args.json:
+        print(cands.to_json(top=args.top))
+    else:
+        print(f"{args.cloud}: {len(cands)} candidates  (filters: {cands.counts})")
+        if cands.reason:
+            print(f"  no candidate: {cands.reason}")
+        for i in range(min(args.top, len(cands))):
+            p = db.primitive(int(cands.primitive_id[i]))
+            pos = np.round(cands.poses[i, :3, 3], 4).tolist()
+            app = np.round(cands.poses[i, :3, 2], 3).tolist()
+            print(f"  #{i}: width {cands.widths[i]:.4f} m  position {pos}  approach {app}  "
+                  f"from {p.family} {np.round(p.dims, 3).tolist()} (s = {cands.match_score[i]:.3f})")
+    if args.png:
+        from sgjax.draw import draw_grasps
+
+        draw_grasps(args.png, cloud, cands.poses, cands.widths, scene_points=scene, max_grasps=args.top,
+                    title=f"{os.path.basename(args.cloud)}: {len(cands)} Stage-1 candidates")
+        if not args.json:
+            print(f"wrote {args.png}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="sgjax", description="SuperGrasp in JAX + MuJoCo")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -122,6 +259,62 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--outliers", type=float, default=0.0, help="fraction of outlier points")
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=_cmd_example)
+
+    p = sub.add_parser("build-db", help="build the primitive database (templates + EMS fits) into the cache")
+    p.add_argument("--small", action="store_true", help="a few dozen primitives (seconds), for tests and quick looks")
+    p.add_argument("--out", help="write here instead of the cache directory ($SGJAX_CACHE)")
+    p.add_argument("--workers", type=int, default=None, help="threads placing templates (default: cores)")
+    p.add_argument("--force", action="store_true", help="rebuild even if the file exists")
+    p.set_defaults(func=_cmd_build_db)
+
+    p = sub.add_parser("candidates", help="Stage-1 grasp candidates for one object cloud")
+    p.add_argument("cloud", help="object cloud: .npy (N x 3, metres), .ply or .pcd")
+    p.add_argument("--scene", help="scene cloud to avoid (other objects, the table)")
+    p.add_argument("--viewpoint", type=float, nargs=3, metavar=("X", "Y", "Z"), help="camera position (default: origin)")
+    p.add_argument("--db", help="a primitive database file (default: the cached default database)")
+    p.add_argument("--small-db", action="store_true", help="use the small database (built in seconds)")
+    p.add_argument("--top", type=int, default=10, help="grasps to print / draw (default 10)")
+    p.add_argument("--json", action="store_true", help="print JSON")
+    p.add_argument("--png", metavar="OUT.png", help="draw the cloud with the top grasps")
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=_cmd_candidates)
+
+    objects_parser = sub.add_parser("objects", help="object sets for simulation: prepare (cached) and list")
+    objects_sub = objects_parser.add_subparsers(dest="objects_command", required=True)
+    for command, func, help_text in (
+        ("prepare", _cmd_objects_prepare, "clean, centre, simplify and decompose an object set (cached)"),
+        ("list", _cmd_objects_list, "print the prepared objects of a set: name, extents, mass, hulls"),
+    ):
+        p = objects_sub.add_parser(command, help=help_text)
+        which = p.add_mutually_exclusive_group()
+        which.add_argument(
+            "--set",
+            default="all",
+            help="tiny | ycb | ycb-seen | ycb-unseen | procedural | seen | unseen | all (default: all)",
+        )
+        which.add_argument("--objects", metavar="DIR", help="a folder of .obj/.stl/.ply meshes in metres")
+        p.set_defaults(func=func)
+        if command == "prepare":
+            p.add_argument("--workers", type=int, default=1, help="parallel processes (default 1)")
+            p.add_argument("--retry-failed", action="store_true", help="retry meshes that failed before")
+            p.add_argument("--quiet", action="store_true", help="no progress bar")
+        else:
+            p.add_argument("--json", action="store_true", help="one JSON object per line")
+
+    p = sub.add_parser("train", help="train E-RNet on labelled grasp shards (an interrupted run resumes)")
+    p.add_argument("--data", required=True, help="directory of .npz sample shards (train/dataset.py format)")
+    p.add_argument("--out", required=True, help="run directory: checkpoints/, metrics.json/.csv, curves.png")
+    p.add_argument("--epochs", type=int, default=100)
+    p.add_argument("--batch-size", type=int, default=128)
+    p.add_argument("--lr", type=float, default=1e-3)
+    p.add_argument("--weight-decay", type=float, default=3e-4)
+    p.add_argument("--decoupled-weight-decay", action="store_true", help="AdamW instead of Adam + L2 (the paper)")
+    p.add_argument("--held-out", type=float, default=0.1, help="fraction of scenes held out (default 0.1)")
+    p.add_argument("--model", choices=("light", "paper"), default="light", help="E-RNet size (default light: CPU)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--synthetic", type=int, default=0, metavar="N", help="first write N synthetic samples to --data")
+    p.add_argument("--quiet", action="store_true", help="no progress bar or per-epoch lines")
+    p.set_defaults(func=_cmd_train)
     return parser
 
 

@@ -28,6 +28,7 @@ from sgjax.superquadric import (
     Superquadric,
     canonicalize,
     duality_factor,
+    prefer_square,
     signed_radial_distance_local,
     tangent_radial_distance_local,
 )
@@ -38,6 +39,7 @@ class EMSConfig:
     """Fixed iteration counts and model constants (static under jit: one compile per config)."""
 
     n_starts: int = 3  # initial frames: z along the longest, middle, shortest principal axis (1..3)
+    upright_start: bool = True  # one more start: z along world +z, x along the horizontal principal axis
     warmup_iterations: int = 8  # EM iterations of each start
     switch_iterations: int = 3  # EM iterations each similar candidate gets in the S-step
     final_iterations: int = 4  # EM iterations of the best candidate on the finer subset
@@ -318,13 +320,20 @@ def _fit_one(points: jax.Array, mask: jax.Array, cfg: EMSConfig) -> FitResult:
     # Starts: the z axis along the longest, the middle and the shortest principal direction.
     orders = jnp.array([[1, 0, 2], [0, 2, 1], [2, 1, 0]])[: cfg.n_starts]
     starts = jax.vmap(lambda o: proper(vecs[:, o]))(orders)
+    if cfg.upright_start:
+        # Objects on a table are mostly upright: a gravity-aligned start escapes the arbitrary
+        # principal frame of near-isotropic clouds (a cube), where every PCA start can stall.
+        _, hvecs = jnp.linalg.eigh(cov[:2, :2])
+        x = jnp.concatenate([hvecs[:, 1], jnp.zeros(1)])
+        upright = jnp.stack([x, jnp.cross(jnp.array([0.0, 0.0, 1.0]), x), jnp.array([0.0, 0.0, 1.0])], -1)
+        starts = jnp.concatenate([starts, upright[None]])
     states, nll = jax.vmap(search)(starts)
     state = jax.tree_util.tree_map(lambda x: x[jnp.argmin(nll)], states)
     state, _ = _run_em(state, _subset(cloud, cfg.fit_points), cfg, cfg.final_iterations)
 
     p = _posterior(_residual(state, cloud.pts, cfg.residual), state.sigma2, cloud, cfg)
     sq = canonicalize(
-        Superquadric(jnp.exp(state.log_a) * norm, state.eps, state.rot, centroid + norm * state.t)
+        prefer_square(Superquadric(jnp.exp(state.log_a) * norm, state.eps, state.rot, centroid + norm * state.t))
     )
     finite = jnp.all(jnp.array([jnp.all(jnp.isfinite(x)) for x in jax.tree_util.tree_leaves(sq)]))
     status = jnp.where(ok & ~finite, pointcloud.FIT_FAILED, status).astype(jnp.int32)

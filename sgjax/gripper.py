@@ -297,6 +297,32 @@ def gripper_boxes(pose: jax.Array, width: jax.Array | float, spec: GripperSpec) 
     return _posed_box(pose[..., None, :, :], centres, halves)
 
 
+def local_regions(
+    local: jax.Array, width: jax.Array | float, spec: GripperSpec, margin: float = 0.0
+) -> tuple[jax.Array, jax.Array]:
+    """Region membership of gripper-frame points, without re-transforming them per box.
+
+    local[..., N, 3] (e.g. from `to_gripper_frame`), width broadcastable to [...] ->
+    (in_closing_region bool[..., N], in_fingers_or_palm bool[..., N]). The same boxes as
+    `closing_region_box` and `gripper_boxes` (the latter grown by `margin`).
+    """
+    local = _points(local, "local")
+    half_w = 0.5 * jnp.asarray(width, local.dtype)[..., None]
+    x, y, z = jnp.abs(local[..., 0]), jnp.abs(local[..., 1]), local[..., 2]
+    in_y = y <= 0.5 * spec.finger_width
+    in_z = (z >= 0.0) & (z <= spec.finger_length)
+    closing = (x <= half_w) & in_y & in_z
+    finger = (
+        (jnp.abs(x - half_w - 0.5 * spec.finger_thickness) <= 0.5 * spec.finger_thickness + margin)
+        & (y <= 0.5 * spec.finger_width + margin)
+        & (z >= -margin)
+        & (z <= spec.finger_length + margin)
+    )
+    px, py, pz = (0.5 * s + margin for s in spec.palm_size)
+    palm = (x <= px) & (y <= py) & (jnp.abs(z + 0.5 * spec.palm_size[2]) <= pz)
+    return closing, finger | palm
+
+
 def points_in_box(points: jax.Array, box: Box, margin: float = 0.0) -> jax.Array:
     """Whether points[..., N, 3] lie in the closed boxes [...] grown by `margin` -> bool[..., N]."""
     points = _points(points)

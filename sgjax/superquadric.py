@@ -365,3 +365,14 @@ def relative_scale_error(fitted: Superquadric, truth: Superquadric) -> float:
         rows, cols = linear_sum_assignment(-cos)
         errors.append(float(np.mean(np.abs(a_fit[cols] - a_true[rows]) / a_true[rows])))
     return min(errors)
+
+
+def prefer_square(sq: Superquadric, eps_tol: float = 0.3, axis_tol: float = 0.1) -> Superquadric:
+    """Where the paper's rule finds a dual (`equivalent_parameterisations`), use the one with eps2 <= 1.
+
+    EMS may describe a square prism as a diamond turned by 45 deg (eps2 ~ 2); choosing one of the two
+    consistently for queries and database entries makes their coefficients comparable directly.
+    """
+    both, applies = equivalent_parameterisations(sq, eps_tol, axis_tol)
+    other = jax.tree_util.tree_map(lambda x: x[1], both)
+    return _select(applies & (sq.epsilon[..., 1] > 1.0), other, sq)

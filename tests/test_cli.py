@@ -21,8 +21,8 @@ def test_example_then_fit_json_and_mesh(tmp_path, capsys):
     record = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert set(record) == {"file", "scale", "epsilon", "rotation", "translation", "inlier_ratio", "valid"}
     assert record["valid"] and len(record["scale"]) == 3 and np.array(record["rotation"]).shape == (3, 3)
-    # the example box has semi-axes (0.04, 0.03, 0.06)
-    np.testing.assert_allclose(sorted(record["scale"]), [0.03, 0.04, 0.06], rtol=0.1)
+    # the example box has semi-axes (0.04, 0.02, 0.06)
+    np.testing.assert_allclose(sorted(record["scale"]), [0.02, 0.04, 0.06], rtol=0.1)
     mesh = trimesh.load(mesh_path)
     assert mesh.is_watertight and len(mesh.faces) > 100
 
@@ -71,3 +71,37 @@ def test_console_entry_point_runs_as_a_process(tmp_path):
         [sys.executable, "-m", "sgjax.cli", "fit", str(tmp_path / "nothing.npy")], capture_output=True, text=True
     )
     assert out.returncode == 2 and "no such file" in out.stderr
+
+
+def test_build_db_then_candidates_json_and_png(tmp_path, capsys):
+    db_path = tmp_path / "db.npz"
+    assert main(["build-db", "--small", "--out", str(db_path), "--workers", "2"]) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert summary["primitives"] > 20 and set(summary["per_family"]) == {"cuboid", "cylinder", "frustum", "elliptical_cylinder"}
+    assert main(["build-db", "--small", "--out", str(db_path)]) == 0  # present: loaded, not rebuilt
+    assert "already built" in capsys.readouterr().out
+
+    cloud = tmp_path / "box.npy"
+    main(["example", str(cloud), "--shape", "cylinder"])
+    capsys.readouterr()
+    png = tmp_path / "cands.png"
+    assert main(["candidates", str(cloud), "--db", str(db_path), "--json", "--top", "3", "--png", str(png)]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["count"] > 0 and len(out["grasps"]) == 3 and out["reason"] is None
+    g = out["grasps"][0]
+    assert np.array(g["pose"]).shape == (4, 4) and 0 < g["width"] <= 0.08
+    assert png.stat().st_size > 10_000
+
+    assert main(["candidates", str(cloud), "--db", str(db_path)]) == 0
+    assert "candidates" in capsys.readouterr().out
+
+
+def test_candidates_bad_input_exits_2(tmp_path, capsys):
+    bad = tmp_path / "nan.npy"
+    np.save(bad, np.full((100, 3), np.nan))
+    assert main(["candidates", str(bad), "--db", str(tmp_path / "none.npz")]) == 2
+    assert "NaN" in capsys.readouterr().err
+    good = tmp_path / "c.npy"
+    main(["example", str(good)])
+    assert main(["candidates", str(good), "--db", str(tmp_path / "none.npz")]) == 2
+    assert "sgjax build-db" in capsys.readouterr().err

@@ -273,3 +273,24 @@ def test_bad_shapes_raise_clear_errors():
         GripperSpec(finger_length=0.0)
     with pytest.raises(ValueError, match="narrower than the open fingers"):
         GripperSpec(palm_size=(0.05, 0.03, 0.02))
+
+
+def test_local_regions_agree_with_world_boxes():
+    from sgjax.gripper import collides_with_points, local_regions, points_in_closing_region, to_gripper_frame
+
+    rng = np.random.default_rng(3)
+    spec = GripperSpec()
+    pose = np.eye(4, dtype=np.float32)
+    pose[:3, :3] = np.linalg.qr(rng.normal(size=(3, 3)))[0] * np.array([1, 1, 1])
+    if np.linalg.det(pose[:3, :3]) < 0:
+        pose[:3, 0] *= -1
+    pose[:3, 3] = [0.1, -0.2, 0.3]
+    pts = (pose[:3, 3] + rng.uniform(-0.07, 0.07, (4000, 3))).astype(np.float32)
+    width = 0.05
+    closing, gripper = local_regions(to_gripper_frame(jnp.asarray(pts), jnp.asarray(pose)), width, spec)
+    np.testing.assert_array_equal(np.asarray(closing), np.asarray(points_in_closing_region(pts, pose, width, spec)))
+    assert 0 < int(np.sum(closing)) and 0 < int(np.sum(gripper))
+    for i in np.flatnonzero(np.asarray(gripper))[:20]:  # each hit collides on its own, each miss does not
+        assert bool(collides_with_points(pts[i : i + 1], None, pose, width, spec))
+    for i in np.flatnonzero(~np.asarray(gripper))[:20]:
+        assert not bool(collides_with_points(pts[i : i + 1], None, pose, width, spec))

@@ -1,0 +1,140 @@
+"""Coarse filtering of transferred grasps (paper Sec. IV-B, "Coarse filtering") and cloud normals.
+
+A candidate is removed when (i) the gripper (fingers or palm) collides with the target object's cloud,
+(ii) fewer than `min_points` target points lie between the fingers, (iii) the closing direction is more
+than `max_normal_angle_deg` from the surface normal at the fingertip contacts, or (iv) given a scene
+cloud, the gripper collides with it (other objects, the table).
+
+Contacts in (iii): for each finger, the target points in the closing region within `contact_slab` of
+the extreme along the closing axis on that finger's side; the finger's alignment is the best |cos|
+between a contact normal and the closing axis. A single view usually shows only one of the two contact
+faces: a finger whose contacts are all far from the closing axis (beyond `observed_angle_deg`, e.g.
+the top face of a box seen from above, its side face hidden) has no observed contact and is not judged;
+every finger with an observed contact must be within the angle, and at least one finger must be.
+
+All of it is JAX, batched over candidates [M] with masks; nothing raises inside jit.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from sgjax.gripper import GripperSpec, local_regions, to_gripper_frame
+
+REASONS = ("collision_object", "too_few_points", "normal_angle", "collision_scene")
+
+
+@dataclasses.dataclass(frozen=True)
+class FilterConfig:
+    """Paper constants (min_points 50, 20 deg) and our contact/normal estimation settings."""
+
+    min_points: int = 50
+    max_normal_angle_deg: float = 20.0
+    observed_angle_deg: float = 60.0
+    contact_slab: float = 0.005  # metres
+    collision_margin: float = 0.0  # grow the finger and palm boxes by this (metres)
+    normal_neighbours: int = 16
+
+
+def estimate_normals(points: jax.Array, mask: jax.Array, viewpoint: jax.Array, k: int = 16) -> jax.Array:
+    """Unit normals by PCA over the k nearest valid neighbours, oriented towards `viewpoint`.
+
+    points [..., N, 3], mask [..., N], viewpoint [..., 3] -> normals [..., N, 3] (zeros where masked).
+    """
+    n = points.shape[-2]
+    k = min(k, n)
+    d2 = jnp.sum((points[..., :, None, :] - points[..., None, :, :]) ** 2, -1)
+    d2 = jnp.where(mask[..., None, :], d2, jnp.inf)
+    neg, idx = jax.lax.top_k(-d2, k)  # [..., N, k], self first
+    ok = jnp.isfinite(neg)
+    nbrs = jnp.take_along_axis(points[..., None, :, :], idx[..., None], axis=-2)
+    w = ok.astype(points.dtype)[..., None]
+    count = jnp.maximum(jnp.sum(w, -2), 1.0)
+    centred = (nbrs - jnp.sum(nbrs * w, -2, keepdims=True) / count[..., None]) * w
+    cov = jnp.einsum("...ki,...kj->...ij", centred, centred) / count[..., None]
+    _, vecs = jnp.linalg.eigh(cov)
+    normal = vecs[..., :, 0]  # smallest variance
+    towards = viewpoint[..., None, :] - points
+    normal = jnp.where(jnp.sum(normal * towards, -1, keepdims=True) < 0, -normal, normal)
+    return jnp.where(mask[..., None], normal, 0.0)
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass
+class FilterResult:
+    """Per candidate [M]: keep, and which tests failed (each test on its own, not only the first)."""
+
+    keep: jax.Array
+    collision_object: jax.Array
+    too_few_points: jax.Array
+    normal_angle: jax.Array
+    collision_scene: jax.Array
+    points_between: jax.Array  # target points in the closing region [M]
+
+
+def _normal_test(local, in_closing, normals, closing_axis, cfg: FilterConfig) -> jax.Array:
+    """Filter (iii) for candidates: local [M, N, 3], in_closing [M, N], normals [N, 3], axis [M, 3] -> ok [M]."""
+    x = local[..., 0]
+    big = jnp.finfo(x.dtype).max
+    cos = jnp.abs(jnp.einsum("nj,mj->mn", normals, closing_axis))
+    aligned_cos = np.cos(np.deg2rad(cfg.max_normal_angle_deg))
+    observed_cos = np.cos(np.deg2rad(cfg.observed_angle_deg))
+    aligned, observed = [], []
+    for side in (-1.0, 1.0):  # left finger (-x), right finger (+x)
+        extreme = jnp.max(jnp.where(in_closing, side * x, -big), -1, keepdims=True)
+        contact = in_closing & (side * x >= extreme - cfg.contact_slab)
+        best = jnp.max(jnp.where(contact, cos, 0.0), -1)
+        aligned.append(best >= aligned_cos)
+        observed.append(best >= observed_cos)
+    aligned, observed = jnp.stack(aligned), jnp.stack(observed)
+    return jnp.all(aligned | ~observed, 0) & jnp.any(aligned, 0)
+
+
+def coarse_filter(
+    poses: jax.Array,
+    widths: jax.Array,
+    valid: jax.Array,
+    object_points: jax.Array,
+    object_mask: jax.Array,
+    normals: jax.Array,
+    scene_points: jax.Array | None = None,
+    scene_mask: jax.Array | None = None,
+    spec: GripperSpec = GripperSpec(),
+    cfg: FilterConfig = FilterConfig(),
+) -> FilterResult:
+    """Apply filters (i)-(iv) to candidates of one object.
+
+    poses [M, 4, 4], widths [M], valid [M] (padding slots are never kept); object_points [N, 3],
+    object_mask [N], normals [N, 3] (`estimate_normals`); scene_points [S, 3], scene_mask [S] or None.
+    """
+    local = to_gripper_frame(object_points, poses)  # [M, N, 3]
+    in_closing, in_gripper = local_regions(local, widths, spec, cfg.collision_margin)
+    in_closing &= object_mask
+    collision_object = jnp.any(in_gripper & object_mask, -1)
+    points_between = jnp.sum(in_closing, -1)
+    too_few = points_between < cfg.min_points
+    normal_bad = ~_normal_test(local, in_closing, normals, poses[:, :3, 0], cfg)
+    if scene_points is None:
+        collision_scene = jnp.zeros_like(collision_object)
+    else:
+        scene_local = to_gripper_frame(scene_points, poses)
+        _, scene_in_gripper = local_regions(scene_local, widths, spec, cfg.collision_margin)
+        collision_scene = jnp.any(scene_in_gripper & scene_mask, -1)
+    keep = valid & ~collision_object & ~too_few & ~normal_bad & ~collision_scene
+    return FilterResult(keep, collision_object & valid, too_few & valid, normal_bad & valid, collision_scene & valid, points_between)
+
+
+def removal_counts(result: FilterResult, valid) -> dict[str, int]:
+    """How many valid candidates each filter removed, each counted at the first filter it fails (host side)."""
+    remaining = np.asarray(valid, bool).copy()
+    counts = {"transferred": int(remaining.sum())}
+    for name in REASONS:
+        failed = remaining & np.asarray(getattr(result, name), bool)
+        counts[name] = int(failed.sum())
+        remaining &= ~failed
+    counts["kept"] = int(remaining.sum())
+    return counts

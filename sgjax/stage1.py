@@ -1,0 +1,260 @@
+"""Stage 1 of SuperGrasp: single-view cloud -> grasp candidates (paper Sec. IV-B).
+
+fit a superquadric (EMS) -> match it against the primitive database (top K1 by d_shape, top K2 by s)
+-> transfer the matched primitives' template grasps (T = T_sq^q (T_sq^c)^-1) -> coarse filtering.
+
+`Stage1` holds the database on the device and one jit-compiled pipeline, batched over objects with
+fixed shapes (clouds padded to `max_object_points`, scene crops to `max_scene_points`, candidates
+compacted to `max_candidates` slots), so repeated calls never recompile. `generate_candidates` is the
+one-object convenience wrapper; `Stage1.batch` runs many objects in one call.
+
+Clouds are in metres in any frame; pass `viewpoint` (the camera position in that frame; default the
+origin, right for camera-frame clouds) so normals are oriented towards the camera.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from sgjax import pointcloud
+from sgjax.coarse_filter import (
+    FilterConfig,
+    coarse_filter,
+    estimate_normals,
+    removal_counts,
+)
+from sgjax.ems import EMSConfig, FitResult, _fit_one
+from sgjax.gripper import GripperSpec
+from sgjax.matching import MatchConfig, MatchDB, match, transfer_grasps
+from sgjax.primitive_db import DBConfig, PrimitiveDB, load_database
+
+
+@dataclasses.dataclass(frozen=True)
+class Stage1Config:
+    """Everything Stage 1 needs except the database. Hashable (a static jit argument)."""
+
+    ems: EMSConfig = EMSConfig()
+    match: MatchConfig = MatchConfig()
+    filter: FilterConfig = FilterConfig()
+    spec: GripperSpec = GripperSpec()
+    max_object_points: int = 1024
+    max_scene_points: int = 4096
+    max_candidates: int = 1024  # transferred slots kept (in match order) for filtering
+    scene_margin: float = 0.12  # scene points farther than this from the object's box cannot touch the gripper
+
+
+@dataclasses.dataclass
+class Candidates:
+    """Grasp candidates of one object (NumPy), in match order (best primitive first).
+
+    poses [M, 4, 4] (gripper frame of `sgjax.gripper` -> world), widths [M];
+    provenance: primitive_id [M] (row in the database), template_id [M] (index among that
+    primitive's grasps), match_rank [M] (0..K2-1), match_score [M] (the paper's s);
+    points_between [M]: target points between the fingers. `superquadric` is the fitted FitResult,
+    `counts` says how many candidates each filter removed, `reason` why the set is empty (else None).
+    """
+
+    poses: np.ndarray
+    widths: np.ndarray
+    primitive_id: np.ndarray
+    template_id: np.ndarray
+    match_rank: np.ndarray
+    match_score: np.ndarray
+    points_between: np.ndarray
+    superquadric: FitResult | None
+    counts: dict
+    reason: str | None = None
+
+    def __len__(self) -> int:
+        return len(self.widths)
+
+    def to_dict(self, top: int | None = None) -> dict:
+        """JSON-ready summary with the first `top` grasps (all when None)."""
+        n = len(self) if top is None else min(top, len(self))
+        out = {"count": len(self), "counts": self.counts, "reason": self.reason, "grasps": []}
+        if self.superquadric is not None:
+            sq = self.superquadric
+            out["superquadric"] = {
+                "scale": np.asarray(sq.scale).tolist(),
+                "epsilon": np.asarray(sq.epsilon).tolist(),
+                "translation": np.asarray(sq.translation).tolist(),
+            }
+        for i in range(n):
+            out["grasps"].append(
+                {
+                    "pose": np.round(self.poses[i], 6).tolist(),
+                    "width": round(float(self.widths[i]), 6),
+                    "primitive_id": int(self.primitive_id[i]),
+                    "template_id": int(self.template_id[i]),
+                    "match_score": round(float(self.match_score[i]), 6),
+                }
+            )
+        return out
+
+    def to_json(self, top: int | None = None) -> str:
+        return json.dumps(self.to_dict(top))
+
+
+def _empty(counts: dict, reason: str, fit: FitResult | None) -> Candidates:
+    z = np.zeros(0)
+    return Candidates(np.zeros((0, 4, 4)), z, z.astype(int), z.astype(int), z.astype(int), z, z.astype(int), fit, counts, reason)
+
+
+def _reason(counts: dict, cfg: Stage1Config) -> str:
+    parts = [
+        f"{counts['collision_object']} collide with the object",
+        f"{counts['too_few_points']} have fewer than {cfg.filter.min_points} points between the fingers",
+        f"{counts['normal_angle']} fail the {cfg.filter.max_normal_angle_deg:g} deg normal test",
+    ]
+    if counts.get("collision_scene"):
+        parts.append(f"{counts['collision_scene']} collide with the scene")
+    return f"all {counts['transferred']} transferred candidates were removed: " + ", ".join(parts)
+
+
+@functools.partial(jax.jit, static_argnames=("cfg", "has_scene"))
+def _pipeline(obj, obj_mask, scene, scene_mask, viewpoint, db: MatchDB, cfg: Stage1Config, has_scene: bool):
+    """Fixed-shape Stage 1 over B objects. obj [B, N, 3], scene [B, S, 3], viewpoint [B, 3]."""
+    fit = jax.vmap(lambda p, m: _fit_one(p, m, cfg.ems))(obj, obj_mask)
+    result = match(fit.scale, fit.epsilon, db, cfg.match)
+    poses, widths, mask = transfer_grasps(fit.superquadric, result, db)  # [B, K2, G, ...]
+    b, k2, g = mask.shape
+    poses, widths, mask = poses.reshape(b, k2 * g, 4, 4), widths.reshape(b, k2 * g), mask.reshape(b, k2 * g)
+    mask &= fit.valid[:, None]
+    # Compact the valid slots to the front (stable: match order is kept), then keep max_candidates.
+    order = jnp.argsort(~mask, axis=1, stable=True)[:, : cfg.max_candidates]
+    take = lambda x: jnp.take_along_axis(x, order.reshape(order.shape + (1,) * (x.ndim - 2)), 1)
+    poses, widths, valid = take(poses), take(widths), take(mask)
+    rank = order // g
+    normals = estimate_normals(obj, obj_mask, viewpoint, cfg.filter.normal_neighbours)
+
+    def one(p, w, v, o, om, nrm, s, sm):
+        return coarse_filter(p, w, v, o, om, nrm, s if has_scene else None, sm if has_scene else None, cfg.spec, cfg.filter)
+
+    filt = jax.vmap(one)(poses, widths, valid, obj, obj_mask, normals, scene, scene_mask)
+    return {
+        "fit": fit,
+        "poses": poses,
+        "widths": widths,
+        "valid": valid,
+        "total_valid": jnp.sum(mask, 1),
+        "filter": filt,
+        "primitive_id": jnp.take_along_axis(result.index, rank, 1),
+        "template_id": order % g,
+        "match_rank": rank,
+        "match_score": jnp.take_along_axis(result.score, rank, 1),
+    }
+
+
+class Stage1:
+    """Stage 1 with its database on the device. Call it on one object, or `batch` on many."""
+
+    def __init__(self, db: PrimitiveDB | None = None, config: Stage1Config = Stage1Config()):
+        self.db = load_database(DBConfig()) if db is None else db
+        self.config = config
+        self.match_db = MatchDB.from_db(self.db, config.match)
+
+    def _crop_scene(self, scene: np.ndarray, obj: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
+        """Scene points near the object, subsampled and padded to max_scene_points."""
+        cfg = self.config
+        lo, hi = obj.min(0) - cfg.scene_margin, obj.max(0) + cfg.scene_margin
+        near = scene[np.all((scene >= lo) & (scene <= hi), axis=1)]
+        near = pointcloud.downsample(near, cfg.max_scene_points, seed) if len(near) else near
+        out = np.zeros((cfg.max_scene_points, 3), np.float32)
+        out[: len(near)] = near
+        return out, np.arange(cfg.max_scene_points) < len(near)
+
+    def batch(self, objects, scenes=None, viewpoints=None, seed: int = 0) -> list[Candidates]:
+        """Candidates for B objects in one compiled call.
+
+        objects: sequence of clouds [N_i, 3]; scenes: None or a sequence (items None or [S_i, 3]);
+        viewpoints: None or [B, 3]. Bad clouds give an empty Candidates with the reason, not an error
+        (the single-object `__call__` raises instead).
+        """
+        cfg = self.config
+        if len(objects) == 0:
+            raise pointcloud.CloudError("no object clouds given")
+        clouds, bad = [], {}
+        for i, o in enumerate(objects):
+            try:
+                clouds.append(pointcloud.as_cloud(o, f"object cloud {i}"))
+            except pointcloud.CloudError as exc:
+                if np.ndim(o) != 2 or np.shape(o)[-1] != 3:
+                    raise  # a wrong shape is a programming error, not a bad observation
+                bad[i] = str(exc)
+                clouds.append(np.zeros((1, 3)))  # fitted as invalid, reported with the message above
+        obj, obj_mask = pointcloud.pad_clouds(clouds, cfg.max_object_points, seed, n_points=cfg.max_object_points)
+        b = len(clouds)
+        has_scene = scenes is not None and any(s is not None for s in scenes)
+        scene = np.zeros((b, cfg.max_scene_points if has_scene else 1, 3), np.float32)
+        scene_mask = np.zeros(scene.shape[:2], bool)
+        if has_scene:
+            if len(scenes) != b:
+                raise ValueError(f"got {b} object clouds but {len(scenes)} scene clouds")
+            for i, s in enumerate(scenes):
+                if s is not None:
+                    s = pointcloud.as_cloud(s, f"scene cloud {i}")
+                    scene[i], scene_mask[i] = self._crop_scene(s[np.all(np.isfinite(s), 1)], obj[i][obj_mask[i]], seed + i)
+        view = np.zeros((b, 3), np.float32) if viewpoints is None else np.asarray(viewpoints, np.float32).reshape(b, 3)
+        out = _pipeline(obj, obj_mask, scene, scene_mask, view, self.match_db, cfg, has_scene)
+        out = jax.tree_util.tree_map(np.asarray, out)
+        return [_empty({"transferred": 0, "kept": 0}, bad[i], None) if i in bad else self._unpack(out, i) for i in range(b)]
+
+    def _unpack(self, out: dict, i: int) -> Candidates:
+        fit = jax.tree_util.tree_map(lambda x: x[i], out["fit"])
+        if not fit.valid:
+            return _empty({"transferred": 0, "kept": 0}, pointcloud.describe_status(int(fit.status)), fit)
+        filt = jax.tree_util.tree_map(lambda x: x[i], out["filter"])
+        counts = removal_counts(filt, out["valid"][i])
+        counts["truncated"] = int(out["total_valid"][i]) - counts["transferred"]
+        keep = filt.keep
+        if not keep.any():
+            return _empty(counts, _reason(counts, self.config), fit)
+        return Candidates(
+            poses=out["poses"][i][keep].astype(np.float64),
+            widths=out["widths"][i][keep].astype(np.float64),
+            primitive_id=out["primitive_id"][i][keep],
+            template_id=out["template_id"][i][keep],
+            match_rank=out["match_rank"][i][keep],
+            match_score=out["match_score"][i][keep].astype(np.float64),
+            points_between=filt.points_between[keep],
+            superquadric=fit,
+            counts=counts,
+        )
+
+    def __call__(self, object_points, scene_points=None, viewpoint=None, seed: int = 0) -> Candidates:
+        """Candidates for one object cloud [N, 3]; raises CloudError naming the problem for bad input."""
+        cloud = pointcloud.as_cloud(object_points, "object cloud")
+        status = int(pointcloud.cloud_status(cloud, np.ones(len(cloud), bool)))
+        if status != pointcloud.OK:
+            raise pointcloud.CloudError(f"object cloud: {pointcloud.describe_status(status)}")
+        views = None if viewpoint is None else np.asarray(viewpoint, np.float32)[None]
+        return self.batch([cloud], None if scene_points is None else [scene_points], views, seed)[0]
+
+
+@functools.lru_cache(maxsize=4)
+def _default_stage1(config: Stage1Config) -> Stage1:
+    return Stage1(None, config)
+
+
+def generate_candidates(
+    object_points,
+    scene_points=None,
+    *,
+    db: PrimitiveDB | None = None,
+    config: Stage1Config = Stage1Config(),
+    viewpoint=None,
+    seed: int = 0,
+) -> Candidates:
+    """Stage-1 grasp candidates for one object cloud [N, 3] (metres), optionally avoiding a scene cloud.
+
+    Uses the default database from the cache (built on first use) unless `db` is given. For many
+    objects, build one `Stage1(db, config)` and call `.batch(...)`.
+    """
+    stage = _default_stage1(config) if db is None else Stage1(db, config)
+    return stage(object_points, scene_points, viewpoint, seed)

@@ -1,0 +1,309 @@
+"""Matching (paper equations), grasp transfer with frame symmetries, coarse filters, Stage-1 end to end."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import trimesh
+from scipy.spatial.transform import Rotation
+
+from sgjax.coarse_filter import (
+    FilterConfig,
+    coarse_filter,
+    estimate_normals,
+    removal_counts,
+)
+from sgjax.gripper import GripperSpec
+from sgjax.matching import (
+    MatchConfig,
+    MatchDB,
+    MatchResult,
+    d_shape,
+    match,
+    match_score,
+    transfer_grasps,
+)
+from sgjax.pointcloud import CloudError
+from sgjax.primitives import Primitive, canonical_grasp, grasp_frame, primitive_mesh
+from sgjax.stage1 import Stage1, Stage1Config
+from sgjax.superquadric import Superquadric
+
+SPEC = GripperSpec()
+CAMERA = np.array([0.45, -0.1, 0.55])
+
+
+def single_view(p: Primitive, yaw_deg: float = 25.0, n: int = 800, noise: float = 0.001, seed: int = 0):
+    """A primitive standing on a table at x = 0.1, seen from CAMERA (it is convex: back-face culling)."""
+    mesh = primitive_mesh(p)
+    pose = np.eye(4)
+    pose[:3, :3] = Rotation.from_euler("z", yaw_deg, degrees=True).as_matrix()
+    pose[:3, 3] = [0.1, 0.0, 0.5 * p.extents[2]]
+    mesh.apply_transform(pose)
+    pts, face = trimesh.sample.sample_surface(mesh, 6 * n, seed=seed)
+    seen = np.sum(mesh.face_normals[face] * (CAMERA - pts), 1) > 0
+    rng = np.random.default_rng(seed)
+    pts = pts[seen][:n]
+    return pts + rng.normal(0, noise, pts.shape), pose
+
+
+@pytest.fixture(scope="module")
+def stage(small_db):
+    return Stage1(small_db)
+
+
+# ---------------------------------------------------------------------------------------------
+# Matching math.
+
+
+def test_scores_follow_the_paper_equations():
+    cfg = MatchConfig()
+    aq, eq = np.array([0.05, 0.03, 0.02]), np.array([0.2, 0.5])
+    ac, ec = np.array([0.04, 0.035, 0.01]), np.array([0.1, 1.0])
+    mq, mc = np.prod(aq) ** (1 / 3), np.prod(ac) ** (1 / 3)
+    d_ratio = np.linalg.norm(np.log(aq / mq) - np.log(ac / mc))
+    d_eps = np.linalg.norm(eq - ec)
+    shape = 1.0 * d_ratio + 1.2 * d_eps
+    d_scale = abs(np.log(mq / mc))
+    d_abs = np.mean(np.abs(aq - ac) / np.maximum(aq, ac))
+    assert float(d_shape(aq, eq, ac, ec, cfg)) == pytest.approx(shape, rel=1e-5)
+    assert float(match_score(aq, eq, ac, ec, cfg)) == pytest.approx(shape + 1.6 * d_scale + 2.0 * d_abs, rel=1e-5)
+    # d_shape ignores overall size; s does not.
+    assert float(d_shape(aq, eq, 2 * aq, eq, cfg)) == pytest.approx(0.0, abs=1e-6)
+    assert float(match_score(aq, eq, 2 * aq, eq, cfg)) > 1.0
+
+
+def test_match_ranks_by_shape_then_score(small_db):
+    mdb = MatchDB.from_db(small_db)
+    i = 7
+    res = match(jnp.asarray(small_db.sq_scale[i : i + 1]), jnp.asarray(small_db.sq_epsilon[i : i + 1]), mdb)
+    assert int(res.index[0, 0]) == i and float(res.score[0, 0]) == pytest.approx(0.0, abs=1e-5)
+    assert np.all(np.diff(np.asarray(res.score[0])) >= -1e-6)
+    # Brute force over the whole database agrees when K1 covers everything.
+    cfg = MatchConfig(K1=len(small_db), K2=len(small_db))
+    full = match(jnp.asarray(small_db.sq_scale[i : i + 1]), jnp.asarray(small_db.sq_epsilon[i : i + 1]), mdb, cfg)
+    s = [float(match_score(small_db.sq_scale[i], small_db.sq_epsilon[i], small_db.sq_scale[j], small_db.sq_epsilon[j], cfg))
+         for j in range(len(small_db))]
+    assert np.asarray(full.score[0]) == pytest.approx(np.minimum(np.sort(s), np.asarray(full.score[0])), abs=1e-6)
+    assert np.asarray(full.score[0]).max() <= max(s) + 1e-6
+
+
+def test_equivalent_parameterisation_takes_part():
+    """A square prism described as a 45-deg diamond (eps2 ~ 2) still matches the square primitive."""
+    cfg = MatchConfig(K1=2, K2=2)
+    square = (np.array([0.03, 0.03, 0.05]), np.array([0.1, 0.1]))
+    other = (np.array([0.05, 0.02, 0.03]), np.array([0.1, 0.1]))
+    db = MatchDB.from_db.__func__  # noqa: F841 (documentation: MatchDB is usually built from a PrimitiveDB)
+    from sgjax.matching import parameterisations
+
+    scale, eps, valid = parameterisations(jnp.asarray([square[0], other[0]]), jnp.asarray([square[1], other[1]]), cfg)
+    mdb = MatchDB(scale, eps, valid, jnp.zeros((2, 1, 4, 4)), jnp.zeros((2, 1)), jnp.ones((2, 1), bool))
+    diamond_scale = np.array([0.03 * np.sqrt(2), 0.03 * np.sqrt(2), 0.05])
+    res = match(jnp.asarray([diamond_scale]), jnp.asarray([[0.1, 1.9]]), mdb, cfg)
+    assert int(res.index[0, 0]) == 0
+    assert int(res.query_param[0, 0]) != int(res.db_param[0, 0])  # matched through the dual
+    assert float(res.score[0, 0]) < 0.2
+
+
+# ---------------------------------------------------------------------------------------------
+# Transfer and frame symmetries.
+
+
+def _same_grasp_sets(a, b, tol=2e-3):
+    """Equal sets of parallel-jaw grasps, up to the jaw flip and tol (templates are deduplicated at 1e-3)."""
+    ka = canonical_grasp(np.asarray(a, np.float64))[:, :3, :].reshape(len(a), -1)
+    kb = canonical_grasp(np.asarray(b, np.float64))[:, :3, :].reshape(len(b), -1)
+    dist = np.abs(ka[:, None] - kb[None]).max(-1)
+    return len(a) == len(b) and dist.min(1).max() <= tol and dist.min(0).max() <= tol
+
+
+@pytest.mark.parametrize("flip", [[1, -1, -1], [-1, 1, -1], [-1, -1, 1]])
+def test_flipped_query_frame_gives_the_same_world_grasps(small_db, flip):
+    mdb = MatchDB.from_db(small_db)
+    rot = Rotation.from_euler("xyz", [10, -20, 35], degrees=True).as_matrix()
+    scale, eps = small_db.sq_scale[3], small_db.sq_epsilon[3]
+    res = match(jnp.asarray([scale]), jnp.asarray([eps]), mdb)
+    sets = []
+    for r in (rot, rot @ np.diag(flip)):
+        q = Superquadric.create(scale[None], eps[None], r[None], np.array([[0.1, 0.2, 0.3]]))
+        poses, _widths, mask = transfer_grasps(q, res, mdb)
+        sets.append(np.asarray(poses)[np.asarray(mask)])
+    assert _same_grasp_sets(*sets)
+    moved = sets[1].copy()
+    moved[:, :3, 3] += 0.01
+    assert not _same_grasp_sets(sets[0], moved)  # the comparison can fail
+
+
+def test_transfer_applies_T_q_times_T_c_inverse(small_db):
+    mdb = MatchDB.from_db(small_db)
+    i = 2
+    rot = Rotation.from_euler("z", 40, degrees=True).as_matrix()
+    q = Superquadric.create(small_db.sq_scale[i][None], small_db.sq_epsilon[i][None], rot[None], np.array([[0.3, 0, 0.1]]))
+    res = MatchResult(*(jnp.asarray([[v]]) for v in (i, 0.0, 0.0, 0, 0)))
+    poses, widths, mask = transfer_grasps(q, res, mdb)
+    obj_poses, obj_widths = small_db.grasps_of(i, frame="object")
+    t_q = np.eye(4)
+    t_q[:3, :3], t_q[:3, 3] = rot, [0.3, 0, 0.1]
+    expected = t_q @ np.linalg.inv(small_db.sq_pose(i)) @ obj_poses
+    got = np.asarray(poses)[0, 0][np.asarray(mask)[0, 0]]
+    np.testing.assert_allclose(got, expected, atol=1e-5)
+    np.testing.assert_allclose(np.asarray(widths)[0, 0][np.asarray(mask)[0, 0]], obj_widths, atol=1e-6)
+
+
+# ---------------------------------------------------------------------------------------------
+# Coarse filters on constructed cases.
+
+
+def _box_cloud(half=(0.02, 0.015, 0.03), n=3000, seed=0):
+    """Full-surface points of an axis-aligned box centred at the origin."""
+    pts, _ = trimesh.sample.sample_surface(trimesh.creation.box(extents=2 * np.asarray(half)), n, seed=seed)
+    return np.asarray(pts, np.float32)
+
+
+def test_each_filter_removes_exactly_its_case():
+    cloud = _box_cloud(half=(0.05, 0.015, 0.03))  # a 10 x 3 x 6 cm box, top face at z = 0.03
+    mask = np.ones(len(cloud), bool)
+    normals = estimate_normals(jnp.asarray(cloud), jnp.asarray(mask), jnp.asarray([0.0, 0.0, 1.0]))
+    down, across = np.array([0, 0, -1.0]), np.array([0, 1.0, 0])
+    top = 0.03
+    good = grasp_frame(down, across, np.array([0, 0, top + 0.005]))  # across the 3 cm side
+    sparse = grasp_frame(down, across, np.array([0.064, 0, top + 0.048]))  # over the end, 2 mm deep
+    angled = grasp_frame(down, np.array([0.5, np.sqrt(0.75), 0]), np.array([0, 0, top + 0.005]))  # 30 deg off
+    poses = np.stack([good, good, sparse, angled]).astype(np.float32)
+    widths = np.array([0.06, 0.02, 0.06, 0.076], np.float32)  # the second closes inside the box
+    valid = np.ones(4, bool)
+    args = (jnp.asarray(cloud), jnp.asarray(mask), normals)
+    result = coarse_filter(jnp.asarray(poses), jnp.asarray(widths), jnp.asarray(valid), *args)
+    assert np.asarray(result.keep).tolist() == [True, False, False, False]
+    assert np.asarray(result.collision_object).tolist() == [False, True, False, False]
+    assert np.asarray(result.too_few_points).tolist()[2:] == [True, False]
+    assert bool(result.normal_angle[3]) and not bool(result.normal_angle[0])
+    assert removal_counts(result, valid) == {
+        "transferred": 4, "collision_object": 1, "too_few_points": 1, "normal_angle": 1, "collision_scene": 0, "kept": 1,
+    }
+    # A neighbour right where the +y finger of `good` goes; padding slots are never kept.
+    neighbour = np.asarray(_box_cloud(half=(0.01, 0.003, 0.01)) + np.array([0.0, 0.034, 0.01]), np.float32)
+    scene = coarse_filter(
+        jnp.asarray(poses[:1]), jnp.asarray(widths[:1]), jnp.asarray(valid[:1]), *args,
+        jnp.asarray(neighbour), jnp.ones(len(neighbour), bool),
+    )
+    assert bool(scene.collision_scene[0]) and not bool(scene.keep[0])
+    moved = grasp_frame(down, across, np.array([-0.03, 0, top + 0.005]))[None].astype(np.float32)
+    clear = coarse_filter(jnp.asarray(moved), jnp.asarray(widths[:1]), jnp.asarray(valid[:1]), *args,
+                          jnp.asarray(neighbour), jnp.ones(len(neighbour), bool))
+    assert bool(clear.keep[0])
+    padded = coarse_filter(jnp.asarray(poses[:1]), jnp.asarray(widths[:1]), jnp.zeros(1, bool), *args)
+    assert not bool(padded.keep[0])
+
+
+def test_normals_are_unit_and_face_the_viewpoint():
+    cloud = _box_cloud()
+    view = np.array([0.3, 0.2, 0.5], np.float32)
+    n = np.asarray(estimate_normals(jnp.asarray(cloud), jnp.ones(len(cloud), bool), jnp.asarray(view)))
+    np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-4)
+    assert np.all(np.sum(n * (view - cloud), 1) >= -1e-6)
+    top = (cloud[:, 2] > 0.0299) & (np.abs(cloud[:, 0]) < 0.015) & (np.abs(cloud[:, 1]) < 0.01)
+    assert np.all(n[top, 2] > 0.99)  # top face: +z
+
+
+# ---------------------------------------------------------------------------------------------
+# Stage 1 end to end.
+
+
+@pytest.mark.parametrize(
+    "p, family",
+    [
+        (Primitive("cuboid", (0.085, 0.05, 0.028)), "cuboid"),
+        (Primitive("cylinder", (0.045, 0.045, 0.1)), "cylinder"),
+        pytest.param(
+            Primitive("frustum", (0.05, 0.026, 0.045)), "frustum",
+            marks=pytest.mark.xfail(strict=True, reason=(
+                "known limitation: EMS on a single view of a strongly tapered frustum extends the fit into "
+                "the unseen back (e.g. 11 x 5 x 4.7 cm, eps2 ~0.2), so boxes match better (README)")),
+        ),
+    ],
+)
+def test_single_view_retrieves_its_own_family(stage, small_db, p, family):
+    cloud, _ = single_view(p)
+    fit = stage(cloud, viewpoint=CAMERA).superquadric
+    res = match(jnp.asarray(fit.scale)[None], jnp.asarray(fit.epsilon)[None], stage.match_db)
+    families = [small_db.primitive(int(i)).family for i in np.asarray(res.index[0])]
+    round_families = {"cylinder", "elliptical_cylinder"} if family == "cylinder" else {family}
+    assert sum(f in round_families for f in families) >= 3, families
+
+
+def test_box_grasps_close_across_opposite_faces_with_true_widths(stage):
+    dims = np.array([0.09, 0.054, 0.027])  # a database cuboid, standing on the table, turned 25 deg
+    cloud, pose = single_view(Primitive("cuboid", tuple(dims)))
+    cands = stage(cloud, viewpoint=CAMERA)
+    assert len(cands) >= 10 and cands.reason is None
+    best = cands.match_rank == 0
+    axes = pose[:3, :3]
+    closing = cands.poses[best][:, :3, 0]
+    cos = np.abs(closing @ axes)  # [M, 3]: against the box's own axes
+    assert np.all(cos.max(1) > 0.95)  # every grasp closes along a box axis
+    across = cos.argmax(1)
+    expected = dims[across] + 2 * SPEC.contact_threshold
+    np.testing.assert_allclose(cands.widths[best], expected, atol=4e-3)
+    # The closing region is centred on the box along the closing axis.
+    centre = cands.poses[best][:, :3, 3] + 0.5 * SPEC.finger_length * cands.poses[best][:, :3, 2]
+    offset = np.sum((centre - pose[:3, 3]) * closing, 1)
+    assert np.all(np.abs(offset) < 6e-3)
+
+
+def test_scene_cloud_removes_grasps_through_the_table(stage):
+    cloud, _ = single_view(Primitive("cuboid", (0.09, 0.054, 0.027)))
+    xs, ys = np.meshgrid(np.linspace(-0.2, 0.4, 150), np.linspace(-0.3, 0.3, 150))
+    table = np.stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)], 1)
+    alone = stage(cloud, viewpoint=CAMERA)
+    with_table = stage(cloud, np.concatenate([table, cloud]), viewpoint=CAMERA)
+    assert with_table.counts["collision_scene"] > 0
+    assert 0 < len(with_table) < len(alone)
+    # No surviving gripper reaches below the table: the fingertips stay above z = 0.
+    tips = with_table.poses[:, :3, 3] + SPEC.finger_length * with_table.poses[:, :3, 2]
+    assert np.all(tips[:, 2] > -1e-3)
+
+
+def test_no_recompile_and_deterministic(stage):
+    from sgjax.stage1 import _pipeline
+
+    cloud, _ = single_view(Primitive("cylinder", (0.045, 0.045, 0.1)))
+    a = stage(cloud, viewpoint=CAMERA)
+    size = _pipeline._cache_size()
+    b = stage(cloud + 0.001, viewpoint=CAMERA)
+    c = stage(cloud, viewpoint=CAMERA)
+    assert _pipeline._cache_size() == size
+    np.testing.assert_array_equal(a.poses, c.poses)
+    assert len(b) > 0
+
+
+def test_batch_reports_bad_clouds_without_raising(stage):
+    good, _ = single_view(Primitive("cuboid", (0.09, 0.054, 0.027)))
+    flat = np.c_[np.random.default_rng(0).random((200, 2)), np.zeros(200)]
+    out = stage.batch([good, np.zeros((5, 3)), flat])
+    assert len(out[0]) > 0
+    assert len(out[1]) == 0 and "too few" in out[1].reason
+    assert len(out[2]) == 0 and "coplanar" in out[2].reason
+
+
+def test_empty_result_explains_which_filter_removed_what(stage):
+    cloud, _ = single_view(Primitive("cuboid", (0.09, 0.054, 0.027)))
+    strict = Stage1(stage.db, Stage1Config(filter=FilterConfig(min_points=10_000)))
+    out = strict(cloud, viewpoint=CAMERA)
+    assert len(out) == 0
+    assert "fewer than 10000 points between the fingers" in out.reason
+    assert out.counts["kept"] == 0 and out.counts["transferred"] > 0
+
+
+@pytest.mark.parametrize(
+    "cloud, message",
+    [
+        (np.zeros((0, 3)), "empty"),
+        (np.zeros((5, 3)) + np.arange(5)[:, None] * 0.01, "too few"),
+        (np.full((50, 3), np.nan), "NaN"),
+        (np.zeros((50, 2)), "shape"),
+    ],
+)
+def test_bad_object_clouds_raise_clear_errors(stage, cloud, message):
+    with pytest.raises(CloudError, match=message):
+        stage(cloud)
