@@ -229,10 +229,7 @@ class Stage1:
 
     def __call__(self, object_points, scene_points=None, viewpoint=None, seed: int = 0) -> Candidates:
         """Candidates for one object cloud [N, 3]; raises CloudError naming the problem for bad input."""
-        cloud = pointcloud.as_cloud(object_points, "object cloud")
-        status = int(pointcloud.cloud_status(cloud, np.ones(len(cloud), bool)))
-        if status != pointcloud.OK:
-            raise pointcloud.CloudError(f"object cloud: {pointcloud.describe_status(status)}")
+        cloud = pointcloud.as_cloud(object_points, "object cloud")  # raises for empty/NaN/too few/flat clouds
         views = None if viewpoint is None else np.asarray(viewpoint, np.float32)[None]
         return self.batch([cloud], None if scene_points is None else [scene_points], views, seed)[0]
 

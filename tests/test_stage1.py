@@ -93,7 +93,6 @@ def test_equivalent_parameterisation_takes_part():
     cfg = MatchConfig(K1=2, K2=2)
     square = (np.array([0.03, 0.03, 0.05]), np.array([0.1, 0.1]))
     other = (np.array([0.05, 0.02, 0.03]), np.array([0.1, 0.1]))
-    db = MatchDB.from_db.__func__  # noqa: F841 (documentation: MatchDB is usually built from a PrimitiveDB)
     from sgjax.matching import parameterisations
 
     scale, eps, valid = parameterisations(jnp.asarray([square[0], other[0]]), jnp.asarray([square[1], other[1]]), cfg)
