@@ -171,7 +171,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         decoupled_weight_decay=args.decoupled_weight_decay,
         seed=args.seed,
         held_out_fraction=args.held_out,
-        model=ERNetConfig.paper() if args.model == "paper" else ERNetConfig.light(),
+        model={"paper": ERNetConfig.paper, "light": ERNetConfig.light, "tiny": ERNetConfig.tiny}[args.model](),
     )
     try:
         result = trainer.train(args.data, args.out, config, progress=not args.quiet)
@@ -310,7 +310,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--weight-decay", type=float, default=3e-4)
     p.add_argument("--decoupled-weight-decay", action="store_true", help="AdamW instead of Adam + L2 (the paper)")
     p.add_argument("--held-out", type=float, default=0.1, help="fraction of scenes held out (default 0.1)")
-    p.add_argument("--model", choices=("light", "paper"), default="light", help="E-RNet size (default light: CPU)")
+    p.add_argument(
+        "--model", choices=("light", "paper", "tiny"), default="light", help="E-RNet size (light: CPU default; tiny: smoke tests)"
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--synthetic", type=int, default=0, metavar="N", help="first write N synthetic samples to --data")
     p.add_argument("--quiet", action="store_true", help="no progress bar or per-epoch lines")

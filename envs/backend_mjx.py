@@ -1,0 +1,167 @@
+"""Grasp trials on MJX (MuJoCo in JAX): `jax.vmap` over trials, `jax.lax.scan` over steps, one `jit`.
+
+Same schedule, same model and the same per-phase summary (`Rollout`) as the C backend. Differences:
+  * MJX cannot evaluate contact sensors with body matching, so the scene is recompiled without its
+    sensors (identical otherwise) and the counts "gripper touches X" are derived from MJX's contact
+    list (active where dist < 0, the margin being 0) with the same grouping as the C sensors.
+  * Every trial runs every phase (no early stop: on a GPU a stopped world saves nothing).
+  * Batches are padded to a power of two so that a scene compiles once per size class; the compiled
+    function is reused across scenes with the same model shapes (e.g. after `remove_object`).
+On CPU, MJX is ~25x slower than the C engine and compiles for tens of seconds: use it on a GPU.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from mujoco import mjx
+
+from envs import gripper_model
+from envs import scene as scene_lib
+from envs.trial import FALLEN_BELOW, Judge, Rollout, Schedule, initial_states
+
+
+@functools.lru_cache(maxsize=4)
+def _sensorless_model(assets: tuple, config: scene_lib.SceneConfig, gripper) -> mujoco.MjModel:
+    spec = scene_lib.build_spec(assets, config, gripper)
+    for sensor in list(spec.sensors):
+        spec.delete(sensor)
+    return spec.compile()
+
+
+@functools.lru_cache(maxsize=4)
+def _device_model(assets: tuple, config: scene_lib.SceneConfig, gripper) -> mjx.Model:
+    return mjx.put_model(_sensorless_model(assets, config, gripper), impl="jax")
+
+
+def _geom_masks(scene: scene_lib.Scene, model: mujoco.MjModel) -> tuple[np.ndarray, ...]:
+    """Geom masks: table [ngeom], objects [ngeom, N], gripper / left finger / right finger [ngeom]."""
+    geom_object = scene.geom_object()
+
+    def body(name: str) -> np.ndarray:
+        return model.geom_bodyid == mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, name)
+
+    left, right = (body(name) for name in gripper_model.FINGER_BODIES)
+    return (
+        geom_object == scene_lib.TABLE,
+        geom_object[:, None] == np.arange(scene.n_objects)[None],
+        body(gripper_model.GRIPPER_BODY) | left | right,
+        left,
+        right,
+    )
+
+
+def _contact_counts(d: mjx.Data, table, objects, grip, left, right) -> jax.Array:
+    """[1 + 3N] contact counts in the C sensors' order: gripper-table, then per object
+    (gripper, left finger, right finger)."""
+    contact = d._impl.contact
+    active = (contact.dist < 0)[:, None]
+    g1, g2 = contact.geom[:, 0], contact.geom[:, 1]
+
+    def pair(a, b):  # [C, K] contacts between a geom of mask a and a geom of mask(s) b
+        a1, a2 = a[g1][:, None], a[g2][:, None]
+        b1, b2 = b[g1].reshape(len(g1), -1), b[g2].reshape(len(g2), -1)
+        return (a1 & b2) | (a2 & b1)
+
+    table_count = jnp.sum(pair(grip, table) & active, axis=0)  # [1]
+    per_object = [jnp.sum(pair(mask, objects) & active, axis=0) for mask in (grip, left, right)]  # 3 x [N]
+    return jnp.concatenate([table_count, jnp.stack(per_object, axis=1).reshape(-1)]).astype(jnp.float32)
+
+
+@functools.partial(jax.jit, static_argnames=("phase_steps", "mocap"))
+def _run(mx, d0, init, controls, force_mask, phase_force, masks, speed_dofs, height_adr, phase_steps, mocap):
+    """vmap over trials of one scan over all steps (one traced mjx.step keeps compiling short).
+
+    Returns per trial and phase: (contact_max [P, S], end counts [P, S], end qpos [P, nq], speed [P]).
+    """
+    table, objects, grip, left, right = masks
+    nphase, nsensor = len(phase_steps), 1 + 3 * objects.shape[1]
+    phase_of_step = jnp.asarray(np.repeat(np.arange(nphase), phase_steps))
+    last_step = jnp.asarray(np.cumsum(phase_steps) - 1)
+
+    def trial(init, controls, force_mask):
+        def step(carry, inputs):
+            d, cmax, last, qpos, vmax = carry
+            t, u = inputs
+            phase = phase_of_step[t]
+            d = d.replace(
+                ctrl=u[:2],
+                mocap_pos=d.mocap_pos.at[mocap].set(u[2:5]),
+                mocap_quat=d.mocap_quat.at[mocap].set(u[5:9]),
+                xfrc_applied=jnp.zeros_like(d.xfrc_applied).at[:, 2].set(-phase_force[phase] * force_mask),
+            )
+            d = mjx.step(mx, d)
+            counts = _contact_counts(d, table, objects, grip, left, right)
+            on_table = d.qpos[height_adr] > FALLEN_BELOW  # objects that fell off may fall fast
+            speed = jnp.max(jnp.where(on_table, jnp.linalg.norm(d.qvel[speed_dofs], axis=-1), 0.0), initial=0.0)
+            end = t == last_step[phase]
+            cmax = cmax.at[phase].max(counts)
+            vmax = vmax.at[phase].max(speed)
+            last = last.at[phase].set(jnp.where(end, counts, last[phase]))
+            qpos = qpos.at[phase].set(jnp.where(end, d.qpos, qpos[phase]))
+            return (d, cmax, last, qpos, vmax), None
+
+        d = d0.replace(**init)
+        zeros = jnp.zeros((nphase, nsensor), jnp.float32)
+        carry = (d, zeros, zeros, jnp.zeros((nphase, d.qpos.shape[0]), d.qpos.dtype), jnp.zeros(nphase, d.qvel.dtype))
+        (_, cmax, last, qpos, vmax), _ = jax.lax.scan(step, carry, (jnp.arange(len(controls)), controls))
+        return cmax, last, qpos, vmax
+
+    return jax.vmap(trial)(init, controls, force_mask)
+
+
+def rollout_mjx(scene: scene_lib.Scene, judge: Judge, schedule: Schedule, nthread: int = 0) -> Rollout:
+    """Roll out the M trials of `schedule` on MJX from the scene's settled state (nthread is unused)."""
+    del nthread
+    model = _sensorless_model(scene.assets, scene.config, scene.gripper)
+    if (model.nq, model.nv, model.nbody, model.ngeom) != (
+        scene.model.nq, scene.model.nv, scene.model.nbody, scene.model.ngeom
+    ):
+        raise AssertionError("the sensorless model must match the scene model")
+    mx = _device_model(scene.assets, scene.config, scene.gripper)
+    m = len(judge.targets)
+    size = 1 << max(0, (m - 1).bit_length())  # pad to a power of two: few compiled sizes
+    pad = np.concatenate([np.arange(m), np.zeros(size - m, np.int64)])
+
+    states = initial_states(scene, schedule, judge.lay)[pad]
+    data = mujoco.MjData(model)
+    mujoco.mj_setState(model, data, scene.state, scene_lib.STATE_SPEC)
+    mujoco.mj_forward(model, data)
+    d0 = mjx.put_data(model, data, impl="jax")
+
+    def part(bit: mujoco.mjtState, shape: tuple) -> jax.Array:
+        return jnp.asarray(states[:, scene_lib.state_slice(model, bit)].reshape(size, *shape))
+
+    init = {
+        "qpos": part(mujoco.mjtState.mjSTATE_QPOS, (model.nq,)),
+        "qvel": part(mujoco.mjtState.mjSTATE_QVEL, (model.nv,)),
+        "ctrl": part(mujoco.mjtState.mjSTATE_CTRL, (model.nu,)),
+        "mocap_pos": part(mujoco.mjtState.mjSTATE_MOCAP_POS, (model.nmocap, 3)),
+        "mocap_quat": part(mujoco.mjtState.mjSTATE_MOCAP_QUAT, (model.nmocap, 4)),
+        "eq_active": part(mujoco.mjtState.mjSTATE_EQ_ACTIVE, (model.neq,)).astype(d0.eq_active.dtype),
+    }
+    force_mask = np.zeros((size, model.nbody))
+    force_mask[np.arange(size), scene.body_ids[judge.targets[pad]]] = 1.0
+    # Every object (fixed shapes): parked ones sit far below FALLEN_BELOW and never count.
+    speed_dofs = judge.lay.object_qvel[:, None] + np.arange(3)
+    height_adr = judge.lay.object_qpos + 2
+    cmax, last, qpos, vmax = _run(
+        mx,
+        d0,
+        init,
+        jnp.asarray(schedule.controls()[pad], d0.qpos.dtype),
+        jnp.asarray(force_mask, d0.qpos.dtype),
+        jnp.asarray(schedule.phase_force, d0.qpos.dtype),
+        tuple(jnp.asarray(x) for x in _geom_masks(scene, model)),
+        jnp.asarray(speed_dofs),
+        jnp.asarray(height_adr),
+        phase_steps=tuple(schedule.phase_steps),
+        mocap=judge.lay.mocap,
+    )
+    cmax, last, qpos, vmax = (np.asarray(x, np.float64)[:m] for x in (cmax, last, qpos, vmax))
+    ok = np.isfinite(qpos).all(axis=(1, 2)) & np.isfinite(vmax).all(axis=1)
+    return Rollout(contact_max=cmax, end_contacts=last, end_qpos=qpos, max_speed=vmax, ok=ok)

@@ -1,0 +1,620 @@
+"""E-RNet: the evaluation and refinement network of SuperGrasp Stage 2 (paper Sec. IV-D, IV-E).
+
+Pipeline for M grasp candidates (pose[M, 4, 4], width[M]) on a scene cloud, all batched, fixed shapes
+(sizes below are the paper config's; the light default uses 512 / 96 points, 64-d features, 128-d anchor):
+
+  crop_regions      scene -> gripper frame of each candidate -> points in the enlarged region
+                    (union of the closing regions of the initial pose and the 3 refined poses:
+                    deepen 0.008 m, rotate -15/0/+15 deg), up to P per candidate, with a mask.
+  prepare_inputs    (training: Gaussian noise, re-crop) -> shuffle -> the first `n_points` (960) real
+                    points = a uniform random sample -> the first `n_anchor` (345) of them inside the
+                    initial closing region, kept as indices into the 960.
+  ERNet             PointNet++ per-point features (N x 128) -> crop the anchor rows -> shared MLP
+                    (256) -> masked max-pool = anchor_feature [M, 256] -> evaluation head (3-layer
+                    MLP, 2 classes) and refinement head (3-layer MLP, 3 logits).
+  score             all of the above in one jitted call: eval probability [M], refine
+                    probabilities [M, 3], valid [M].
+
+Downsampling is random, not FPS: the scene (inference) or region (training) is shuffled and the first
+real points are kept, which costs O(N) instead of FPS's sequential loop. Candidates whose initial
+closing region holds no point are `valid=False` with probability 0 (never NaN); non-finite scene
+points are treated as absent.
+
+Configs: `ERNetConfig.paper()` is the paper's sizes (960 / 345 points, N x 128 features, 256-d anchor,
+3-level PointNet++ SSG with FPS); `ERNetConfig.light()` (the default, `ERNetConfig()`) is a smaller
+network sized to score 512 candidates in ~0.1 s on a 2-core CPU (README "E-RNet"); `tiny()` is for tests.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import os
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from flax import nnx
+
+from sgjax import gripper
+from sgjax.gripper import GripperSpec
+from sgjax.pointnet2 import (
+    BackboneConfig,
+    PointNet2,
+    SetAbstractionConfig,
+    SharedMLP,
+    first_set_bits,
+    first_true_indices,
+    gather,
+    interleave,
+    pack_interleaved,
+)
+
+# ---------------------------------------------------------------------------------------------
+# Configuration.
+
+
+LIGHT_BACKBONE = BackboneConfig(
+    set_abstraction=(
+        SetAbstractionConfig(n_centroids=32, radius=0.02, n_neighbours=8, mlp=(16, 32)),
+        SetAbstractionConfig(n_centroids=8, radius=0.04, n_neighbours=8, mlp=(32, 64)),
+    ),
+    feature_propagation=((64,), (64, 64)),
+    sampler="random",
+)
+PAPER_BACKBONE = BackboneConfig(
+    set_abstraction=(
+        SetAbstractionConfig(256, 0.01, 32, (32, 32, 64)),
+        SetAbstractionConfig(64, 0.02, 32, (64, 64, 128)),
+        SetAbstractionConfig(16, 0.04, 32, (128, 128, 256)),
+    ),
+    feature_propagation=((256, 256), (256, 128), (128, 128, 128)),
+    sampler="fps",
+)
+DEFAULT_SPEC = GripperSpec()
+
+
+@dataclasses.dataclass(frozen=True)
+class ERNetConfig:
+    """E-RNet sizes and loss settings; hashable (static under jit) and JSON round-trippable.
+
+    n_points: points of the enlarged-region crop fed to the backbone (paper: 960).
+    n_anchor: points of the initial closing region whose features form the anchor (paper: 345).
+    backbone: PointNet++ config; its last feature propagation width is the per-point feature size.
+    anchor_mlp: shared MLP widths before the max-pool (paper: to 256).
+    eval_hidden, refine_hidden: hidden widths of the 3-layer heads (-> 2 classes, -> 3 logits).
+    n_refinements: refinement variants (must equal GripperSpec.num_refinements; paper: 3).
+    noise_std: Gaussian noise (m) added to the points during training (the paper gives no value).
+    label_smoothing: epsilon of L_e (paper Eq. for L_e; 0.1).
+    lambda_eval, lambda_refine: L = lambda1 L_e + lambda2 L_r (paper: 1, 1).
+    """
+
+    n_points: int = 512
+    n_anchor: int = 96
+    backbone: BackboneConfig = LIGHT_BACKBONE
+    anchor_mlp: tuple[int, ...] = (128,)
+    eval_hidden: tuple[int, ...] = (64, 32)
+    refine_hidden: tuple[int, ...] = (64, 32)
+    n_refinements: int = 3
+    noise_std: float = 0.001
+    label_smoothing: float = 0.1
+    lambda_eval: float = 1.0
+    lambda_refine: float = 1.0
+
+    def __post_init__(self):
+        for name in ("anchor_mlp", "eval_hidden", "refine_hidden"):
+            object.__setattr__(self, name, tuple(int(c) for c in getattr(self, name)))
+        if isinstance(self.backbone, dict):
+            object.__setattr__(self, "backbone", _backbone_from_dict(self.backbone))
+        if self.n_points < 1 or not 1 <= self.n_anchor <= self.n_points:
+            raise ValueError(f"need 1 <= n_anchor <= n_points, got n_anchor={self.n_anchor}, n_points={self.n_points}")
+        if self.backbone.set_abstraction[0].n_centroids > self.n_points:
+            raise ValueError("the first set abstraction samples more centroids than there are points")
+        if not self.anchor_mlp or len(self.eval_hidden) != 2 or len(self.refine_hidden) != 2:
+            raise ValueError("anchor_mlp must be non-empty and both heads need 2 hidden widths (3 layers)")
+        if not 0.0 <= self.label_smoothing < 1.0 or self.noise_std < 0:
+            raise ValueError("label_smoothing must be in [0, 1) and noise_std >= 0")
+
+    @classmethod
+    def light(cls, **overrides) -> ERNetConfig:
+        """The CPU default: 512 / 96 points, a 2-level backbone (32 and 8 centroids, 8 neighbours,
+        random sampling), N x 64 point features, 128-d anchor feature (README "E-RNet" has timings)."""
+        return cls(**overrides)
+
+    @classmethod
+    def paper(cls, **overrides) -> ERNetConfig:
+        """The paper's sizes: 960 / 345 points, N x 128 point features, 256-d anchor feature.
+
+        The backbone is PointNet++ SSG with FPS, three levels scaled to a 960-point crop of a region
+        about 8 x 4 x 6 cm (the paper does not list its layer sizes)."""
+        base = {
+            "n_points": 960,
+            "n_anchor": 345,
+            "backbone": PAPER_BACKBONE,
+            "anchor_mlp": (256,),
+            "eval_hidden": (128, 64),
+            "refine_hidden": (128, 64),
+        }
+        base.update(overrides)
+        return cls(**base)
+
+    @classmethod
+    def tiny(cls, **overrides) -> ERNetConfig:
+        """A minimal network (64 / 24 points, 16-wide layers) for tests and quick experiments."""
+        base = {
+            "n_points": 64,
+            "n_anchor": 24,
+            "backbone": BackboneConfig(
+                (SetAbstractionConfig(16, 0.02, 8, (16, 16)), SetAbstractionConfig(4, 0.05, 8, (16, 24))),
+                ((24,), (24, 16)),
+                sampler="fps",
+            ),
+            "anchor_mlp": (32,),
+            "eval_hidden": (16, 16),
+            "refine_hidden": (16, 16),
+        }
+        base.update(overrides)
+        return cls(**base)
+
+    @property
+    def feature_dim(self) -> int:
+        return self.backbone.feature_dim
+
+    @property
+    def anchor_dim(self) -> int:
+        return self.anchor_mlp[-1]
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> ERNetConfig:
+        return cls(**data)
+
+
+def _backbone_from_dict(data: dict[str, Any]) -> BackboneConfig:
+    data = dict(data)
+    data["set_abstraction"] = tuple(SetAbstractionConfig(**sa) for sa in data["set_abstraction"])
+    return BackboneConfig(**data)
+
+
+def _check_config(config: ERNetConfig, spec: GripperSpec) -> None:
+    if config.n_refinements != spec.num_refinements:
+        raise ValueError(
+            f"ERNetConfig.n_refinements={config.n_refinements} but the gripper spec has "
+            f"{spec.num_refinements} refinement variants"
+        )
+
+
+# ---------------------------------------------------------------------------------------------
+# Regions in the gripper frame (the geometry comes from sgjax.gripper; evaluated on x/y/z planes).
+
+
+@functools.cache
+def _region_frames(spec: GripperSpec) -> np.ndarray:
+    """The enlarged region's poses relative to the initial pose: [1 + K, 4, 4] (index 0: identity).
+
+    refined = pose @ T_v, so T_v = enlarged_region_poses(identity)."""
+    with jax.ensure_compile_time_eval():
+        return np.asarray(gripper.enlarged_region_poses(jnp.eye(4), spec), np.float64)
+
+
+def _in_closing_box(x, y, z, width, spec: GripperSpec, frame: np.ndarray | None = None):
+    """Whether gripper-frame points (planes x, y, z [M, N]) lie in the closing region of the pose
+    `frame` (relative to the gripper frame; None: the initial pose) for widths [M]."""
+    centre, half = gripper.closing_region(spec, width)  # [M, 3] each
+    if frame is not None:
+        r, t = frame[:3, :3], frame[:3, 3]
+        d = [c - float(o) if o != 0 else c for c, o in zip((x, y, z), t)]
+        x, y, z = (_dot_constant(r[:, i], d) for i in range(3))
+    return (
+        (jnp.abs(x - centre[:, 0:1]) <= half[:, 0:1])
+        & (jnp.abs(y - centre[:, 1:2]) <= half[:, 1:2])
+        & (jnp.abs(z - centre[:, 2:3]) <= half[:, 2:3])
+    )
+
+
+def _dot_constant(coefficients: np.ndarray, planes: list) -> jax.Array:
+    """sum_j c_j * planes[j] for trace-time constants c, skipping zeros and unit factors (the refined
+    frames are a z shift and a z rotation, so most terms vanish; this runs M x N times per call)."""
+    terms = [p if c == 1.0 else (-p if c == -1.0 else float(c) * p) for c, p in zip(coefficients, planes) if c != 0.0]
+    out = terms[0] if terms else jnp.zeros_like(planes[0])
+    for term in terms[1:]:
+        out = out + term
+    return out
+
+
+def in_closing_region_local(points: jax.Array, width: jax.Array, spec: GripperSpec) -> jax.Array:
+    """Gripper-frame points[M, N, 3], width[M] -> bool[M, N]: inside the initial closing region.
+
+    Equals `gripper.points_in_closing_region(to_world(points, pose), pose, width, spec)`."""
+    x, y, z = points[..., 0], points[..., 1], points[..., 2]
+    return _in_closing_box(x, y, z, jnp.asarray(width, points.dtype), spec)
+
+
+def in_enlarged_region_local(points: jax.Array, width: jax.Array, spec: GripperSpec) -> jax.Array:
+    """Gripper-frame points[M, N, 3], width[M] -> bool[M, N]: inside the enlarged region.
+
+    Equals `gripper.points_in_enlarged_region` evaluated in the world frame."""
+    x, y, z = points[..., 0], points[..., 1], points[..., 2]
+    return _in_enlarged(x, y, z, jnp.asarray(width, points.dtype), spec)
+
+
+def _in_enlarged(x, y, z, width, spec: GripperSpec):
+    inside = _in_closing_box(x, y, z, width, spec)
+    for frame in _region_frames(spec)[1:]:
+        inside = inside | _in_closing_box(x, y, z, width, spec, frame)
+    return inside
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Region:
+    """Scene points in each candidate's enlarged region, in that candidate's gripper frame.
+
+    points: [M, P, 3] (padding rows are 0); mask: bool[M, P]; count: int32[M], points found in the
+    region before truncation to P (count > P means a uniform random P of them were kept)."""
+
+    points: jax.Array
+    mask: jax.Array
+    count: jax.Array
+
+
+def _check_candidates(poses, widths) -> tuple[jax.Array, jax.Array]:
+    poses = jnp.asarray(poses)
+    if poses.ndim != 3 or poses.shape[-2:] != (4, 4):
+        raise ValueError(f"poses must have shape [M, 4, 4], got {poses.shape}")
+    widths = jnp.asarray(widths, poses.dtype if jnp.issubdtype(poses.dtype, jnp.floating) else jnp.float32)
+    if widths.shape != poses.shape[:1]:
+        raise ValueError(f"widths must have shape [M] = {poses.shape[:1]} (one per pose), got {widths.shape}")
+    return poses.astype(jnp.float32), widths.astype(jnp.float32)
+
+
+def crop_regions(
+    scene: jax.Array,
+    poses: jax.Array,
+    widths: jax.Array,
+    spec: GripperSpec,
+    n_points: int,
+    scene_mask: jax.Array | None = None,
+) -> Region:
+    """Crop each candidate's enlarged region from a world-frame scene cloud, in its gripper frame.
+
+    scene[N, 3] (world), poses[M, 4, 4] (gripper -> world), widths[M], scene_mask[N] (None: all)
+    -> Region with P = n_points. Keeps the first n_points region points in scene order, so shuffle
+    the scene first for a uniform sample (`score` does). Non-finite scene points count as absent.
+    Cost is one fused pass over M x N (no [M, N, 3] intermediate).
+    """
+    scene = jnp.asarray(scene, jnp.float32)
+    if scene.ndim != 2 or scene.shape[-1] != 3:
+        raise ValueError(f"scene must have shape [N, 3], got {scene.shape}")
+    poses, widths = _check_candidates(poses, widths)
+    valid = jnp.all(jnp.isfinite(scene), -1)
+    if scene_mask is not None:
+        scene_mask = jnp.asarray(scene_mask)
+        if scene_mask.shape != scene.shape[:1]:
+            raise ValueError(f"scene_mask must have shape {scene.shape[:1]}, got {scene_mask.shape}")
+        valid = valid & scene_mask.astype(bool)
+    rotation, translation = poses[:, :3, :3], poses[:, :3, 3]
+    # Absent points become NaN: every comparison with NaN is False, so they are never inside.
+    planes = interleave(jnp.where(valid[None, :], scene.T, jnp.nan), jnp.nan)  # [3, 32, W]
+
+    def region_words(candidate):
+        r, t, w = candidate  # [3, 3], [3], []
+        d = [planes[i] - t[i] for i in range(3)]
+        local = [r[0, i] * d[0] + r[1, i] * d[1] + r[2, i] * d[2] for i in range(3)]  # p_g = R^T (p_w - t)
+        return pack_interleaved(_in_enlarged(*(c[None] for c in local), w[None], spec)[0])
+
+    # lax.map over chunks of candidates: its inputs are materialised, so XLA cannot fuse whatever
+    # computed the poses (a caller's guard, a reduction) into the M x N loop and redo it per point.
+    words = jax.lax.map(region_words, (rotation, translation, widths), batch_size=min(64, len(widths)))
+    index, count = first_set_bits(words, scene.shape[0], n_points)
+    mask = jnp.arange(n_points) < count[:, None]
+    picked = jnp.where(valid[:, None], scene, 0.0)[jnp.minimum(index, scene.shape[0] - 1)]  # [M, P, 3]
+    points = jnp.einsum("mpi,mij->mpj", picked - translation[:, None, :], rotation)
+    return Region(jnp.where(mask[..., None], points, 0.0), mask, count)
+
+
+# ---------------------------------------------------------------------------------------------
+# Network inputs.
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class ERNetInputs:
+    """One batch of network inputs (gripper frame, metres).
+
+    points: [M, n_points, 3] the enlarged-region crop; mask: bool[M, n_points];
+    anchor_index: int32[M, n_anchor] rows of `points` inside the initial closing region;
+    anchor_mask: bool[M, n_anchor]."""
+
+    points: jax.Array
+    mask: jax.Array
+    anchor_index: jax.Array
+    anchor_mask: jax.Array
+
+    @property
+    def valid(self) -> jax.Array:
+        """bool[M]: the initial closing region holds at least one point (else no anchor feature)."""
+        return jnp.any(self.anchor_mask, axis=-1)
+
+
+def prepare_inputs(
+    points: jax.Array,
+    mask: jax.Array | None,
+    widths: jax.Array,
+    spec: GripperSpec,
+    config: ERNetConfig,
+    *,
+    key: jax.Array | None = None,
+    noise_std: float = 0.0,
+) -> ERNetInputs:
+    """Enlarged-region points -> network inputs (paper Sec. IV-E).
+
+    points[M, P, 3] in each candidate's gripper frame, mask[M, P], widths[M] -> ERNetInputs.
+    With `key`: Gaussian noise of `noise_std` metres (points pushed out of the enlarged region are
+    dropped, as if the noisy cloud had been cropped) and a random shuffle before keeping the first
+    `n_points` real points. Without `key` the given order is kept (crop_regions output of a shuffled
+    scene is already in random order). Then the first `n_anchor` of those inside the initial closing
+    region become the anchor. Fewer points -> masked padding; non-finite points are dropped.
+    """
+    points = jnp.asarray(points, jnp.float32)
+    if points.ndim != 3 or points.shape[-1] != 3:
+        raise ValueError(f"region points must have shape [M, P, 3], got {points.shape}")
+    m, p = points.shape[:2]
+    widths = jnp.asarray(widths, jnp.float32)
+    if widths.shape != (m,):
+        raise ValueError(f"widths must have shape [M] = ({m},), got {widths.shape}")
+    mask = jnp.ones((m, p), bool) if mask is None else jnp.asarray(mask)
+    if mask.shape != (m, p):
+        raise ValueError(f"region mask must have shape {(m, p)}, got {mask.shape}")
+    mask = mask.astype(bool) & jnp.all(jnp.isfinite(points), -1)
+    points = jnp.where(mask[..., None], points, 0.0)
+    if key is not None:
+        noise_key, order_key = jax.random.split(key)
+        if noise_std > 0:
+            points = points + noise_std * jax.random.normal(noise_key, points.shape)
+            mask = mask & in_enlarged_region_local(points, widths, spec)
+        order = jnp.argsort(jax.random.uniform(order_key, (m, p)), axis=-1)
+        points, mask = gather(points, order), jnp.take_along_axis(mask, order, axis=-1)
+
+    index, count = first_true_indices(mask, config.n_points)
+    keep = jnp.arange(config.n_points) < count[:, None]
+    crop = jnp.where(keep[..., None], gather(points, jnp.minimum(index, p - 1)), 0.0)
+
+    closing = in_closing_region_local(crop, widths, spec) & keep
+    anchor_index, anchor_count = first_true_indices(closing, config.n_anchor)
+    anchor_mask = jnp.arange(config.n_anchor) < anchor_count[:, None]
+    return ERNetInputs(crop, keep, jnp.where(anchor_mask, anchor_index, 0), anchor_mask)
+
+
+# ---------------------------------------------------------------------------------------------
+# The network.
+
+
+def anchor_feature(features: jax.Array, mask: jax.Array) -> jax.Array:
+    """Masked max-pool of the anchor points' features: [M, A, C], mask[M, A] -> [M, C] (0 if empty)."""
+    pooled = jnp.max(jnp.where(mask[..., None], features, -jnp.inf), axis=-2)
+    return jnp.where(jnp.any(mask, -1, keepdims=True), pooled, 0.0)
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class ERNetOutput:
+    """eval_logits: [M, 2] (class 1 = stable grasp); refine_logits: [M, K] (deepen + rotate variants)."""
+
+    eval_logits: jax.Array
+    refine_logits: jax.Array
+
+    @property
+    def eval_prob(self) -> jax.Array:
+        """[M]: probability of a stable grasp."""
+        return jax.nn.softmax(self.eval_logits, axis=-1)[..., 1]
+
+    @property
+    def refine_prob(self) -> jax.Array:
+        """[M, K]: probability that each refinement variant gives a stable grasp."""
+        return jax.nn.sigmoid(self.refine_logits)
+
+
+class ERNet(nnx.Module):
+    """Backbone -> crop anchor -> shared MLP + max-pool (anchor feature) -> evaluation / refinement heads."""
+
+    def __init__(self, config: ERNetConfig | None = None, *, rngs: nnx.Rngs):
+        config = ERNetConfig() if config is None else config
+        self.config = config
+        self.backbone = PointNet2(config.backbone, rngs=rngs)
+        self.anchor_mlp = SharedMLP(config.feature_dim, config.anchor_mlp, rngs=rngs)
+        self.eval_head = SharedMLP(config.anchor_dim, (*config.eval_hidden, 2), rngs=rngs, final_relu=False)
+        self.refine_head = SharedMLP(
+            config.anchor_dim, (*config.refine_hidden, config.n_refinements), rngs=rngs, final_relu=False
+        )
+
+    def __call__(self, inputs: ERNetInputs) -> ERNetOutput:
+        # Per-point features N x F, computed only at the anchor rows (identical to cropping them).
+        point_features = self.backbone(inputs.points, inputs.mask, query_index=inputs.anchor_index)
+        anchor = anchor_feature(self.anchor_mlp(point_features), inputs.anchor_mask)
+        return ERNetOutput(self.eval_head(anchor), self.refine_head(anchor))
+
+
+# ---------------------------------------------------------------------------------------------
+# Losses.
+
+
+def _weighted_mean(values: jax.Array, weights: jax.Array | None) -> jax.Array:
+    if weights is None:
+        return jnp.mean(values)
+    weights = jnp.asarray(weights, values.dtype)
+    total = jnp.sum(weights)
+    return jnp.where(total > 0, jnp.sum(values * weights) / jnp.where(total > 0, total, 1.0), 0.0)
+
+
+def evaluation_loss(
+    logits: jax.Array, labels: jax.Array, epsilon: float = 0.1, weights: jax.Array | None = None
+) -> jax.Array:
+    """Paper L_e: -1/B sum_i [(1 - eps) log p_{i, y_i} + eps / C sum_c log p_{i, c}].
+
+    logits[B, C], labels int[B] in [0, C), weights[B] (None: all 1; a weighted mean otherwise) -> scalar.
+    """
+    log_p = jax.nn.log_softmax(logits, axis=-1)
+    picked = jnp.take_along_axis(log_p, jnp.asarray(labels, jnp.int32)[:, None], axis=-1)[:, 0]
+    per_sample = -((1.0 - epsilon) * picked + epsilon / logits.shape[-1] * jnp.sum(log_p, axis=-1))
+    return _weighted_mean(per_sample, weights)
+
+
+def refinement_loss(logits: jax.Array, labels: jax.Array, weights: jax.Array | None = None) -> jax.Array:
+    """Paper L_r: binary cross-entropy averaged over the M samples and K variants.
+
+    logits[B, K], labels {0, 1}[B, K], weights[B] -> scalar."""
+    per_sample = jnp.mean(optax.sigmoid_binary_cross_entropy(logits, jnp.asarray(labels, logits.dtype)), axis=-1)
+    return _weighted_mean(per_sample, weights)
+
+
+def ernet_loss(
+    output: ERNetOutput,
+    labels: jax.Array,
+    refine_labels: jax.Array,
+    config: ERNetConfig,
+    weights: jax.Array | None = None,
+) -> tuple[jax.Array, dict[str, jax.Array]]:
+    """L = lambda1 L_e + lambda2 L_r -> (loss, {"eval": L_e, "refine": L_r})."""
+    le = evaluation_loss(output.eval_logits, labels, config.label_smoothing, weights)
+    lr = refinement_loss(output.refine_logits, refine_labels, weights)
+    return config.lambda_eval * le + config.lambda_refine * lr, {"eval": le, "refine": lr}
+
+
+# ---------------------------------------------------------------------------------------------
+# Inference.
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class ERNetScores:
+    """eval_prob [M], refine_prob [M, K] (0 where not valid), valid bool[M], region_count int32[M]
+    (scene points found in the enlarged region)."""
+
+    eval_prob: jax.Array
+    refine_prob: jax.Array
+    valid: jax.Array
+    region_count: jax.Array
+
+
+SCORE_CHUNK = 128  # candidates per network pass in `score`
+
+
+def forward_chunked(model: ERNet, inputs: ERNetInputs, chunk: int = SCORE_CHUNK) -> ERNetOutput:
+    """model(inputs) evaluated `chunk` candidates at a time (lax.map): the same values, but on CPU the
+    intermediates stay in cache and XLA cannot fuse the input preparation into every consumer
+    (measured: 1.6x faster at 512 candidates than one pass)."""
+    m = inputs.points.shape[0]
+    out = jax.lax.map(lambda x: model(jax.tree.map(lambda a: a[None], x)), inputs, batch_size=min(chunk, m))
+    return jax.tree.map(lambda a: a[:, 0], out)
+
+
+def _scores(model: ERNet, inputs: ERNetInputs, valid, count) -> ERNetScores:
+    out = forward_chunked(model, inputs)
+    valid = valid & inputs.valid
+    return ERNetScores(
+        jnp.where(valid, out.eval_prob, 0.0), jnp.where(valid[:, None], out.refine_prob, 0.0), valid, count
+    )
+
+
+@functools.partial(jax.jit, static_argnames=("graphdef", "spec"))
+def score_regions(
+    graphdef: nnx.GraphDef,
+    state: nnx.State,
+    points: jax.Array,
+    mask: jax.Array | None,
+    widths: jax.Array,
+    *,
+    spec: GripperSpec = DEFAULT_SPEC,
+    key: jax.Array | None = None,
+) -> ERNetScores:
+    """Score pre-cropped enlarged regions (e.g. dataset samples): points[M, P, 3] gripper frame,
+    mask[M, P], widths[M] -> ERNetScores. `key` shuffles before downsampling (None: keep order)."""
+    model = nnx.merge(graphdef, state)
+    _check_config(model.config, spec)
+    widths = jnp.asarray(widths, jnp.float32)
+    inputs = prepare_inputs(points, mask, widths, spec, model.config, key=key)
+    valid = jnp.isfinite(widths) & gripper.width_in_range(widths, spec)
+    return _scores(model, inputs, valid, jnp.sum(inputs.mask, -1).astype(jnp.int32))
+
+
+@functools.partial(jax.jit, static_argnames=("graphdef", "spec"))
+def score(
+    graphdef: nnx.GraphDef,
+    state: nnx.State,
+    scene: jax.Array,
+    poses: jax.Array,
+    widths: jax.Array,
+    scene_mask: jax.Array | None = None,
+    *,
+    spec: GripperSpec = DEFAULT_SPEC,
+    key: jax.Array | None = None,
+) -> ERNetScores:
+    """Stage 2 for M candidates on one scene: crop, prepare, evaluate and refine in one jitted call.
+
+    graphdef, state = nnx.split(model); scene[N, 3] world frame, poses[M, 4, 4], widths[M],
+    scene_mask[N] (None: all points) -> ERNetScores. The scene is shuffled with `key` (default a
+    fixed key, so results are deterministic) so that each crop is a uniform sample of its region.
+    Candidates with a non-finite pose or width, a width outside [0, max_opening], or an empty
+    initial closing region are valid=False with probabilities 0. Shapes are static: the same
+    (N, M) never recompiles.
+    """
+    model = nnx.merge(graphdef, state)
+    config: ERNetConfig = model.config
+    _check_config(config, spec)
+    scene = jnp.asarray(scene, jnp.float32)
+    if scene.ndim != 2 or scene.shape[-1] != 3:
+        raise ValueError(f"scene must have shape [N, 3], got {scene.shape}")
+    poses, widths = _check_candidates(poses, widths)
+    key = jax.random.key(0) if key is None else key
+    if scene_mask is not None and jnp.shape(scene_mask) != scene.shape[:1]:
+        raise ValueError(f"scene_mask must have shape {scene.shape[:1]}, got {jnp.shape(scene_mask)}")
+    order = jax.random.permutation(key, scene.shape[0])
+    scene_mask = None if scene_mask is None else jnp.asarray(scene_mask)[order]
+    ok = jnp.all(jnp.isfinite(poses), axis=(-2, -1)) & jnp.isfinite(widths) & gripper.width_in_range(widths, spec)
+    safe_poses = jnp.where(ok[:, None, None], poses, jnp.eye(4))
+    safe_widths = jnp.where(ok, widths, 0.0)
+    region = crop_regions(scene[order], safe_poses, safe_widths, spec, config.n_points, scene_mask)
+    inputs = prepare_inputs(region.points, region.mask, safe_widths, spec, config)
+    return _scores(model, inputs, ok, region.count)
+
+
+# ---------------------------------------------------------------------------------------------
+# Saved models (the trainer's checkpoint layout; orbax).
+
+CHECKPOINT_DIR = "checkpoints"  # inside a run directory
+PARAMS_ITEM, OPT_STATE_ITEM, META_ITEM = "params", "opt_state", "meta"
+
+
+def abstract_model(config: ERNetConfig) -> ERNet:
+    """An ERNet with shape-only parameters (no initialisation cost), for restoring checkpoints."""
+    return nnx.eval_shape(lambda: ERNet(config, rngs=nnx.Rngs(0)))
+
+
+def load_model(run_dir: str | os.PathLike, epoch: int | None = None) -> tuple[ERNet, dict[str, Any]]:
+    """Load a trained ERNet from a `sgjax train` run directory -> (model, meta).
+
+    epoch: which epoch's checkpoint (None: the latest). meta holds the model/training configs and the
+    metric history. Raises FileNotFoundError when the directory holds no checkpoint.
+    """
+    import orbax.checkpoint as ocp
+
+    directory = os.path.abspath(os.path.join(os.fspath(run_dir), CHECKPOINT_DIR))
+    if not os.path.isdir(directory):
+        raise FileNotFoundError(f"no checkpoints in {run_dir} (expected {directory})")
+    manager = ocp.CheckpointManager(directory, options=ocp.CheckpointManagerOptions(create=False))
+    step = manager.latest_step() if epoch is None else epoch
+    if step is None or step not in manager.all_steps():
+        raise FileNotFoundError(f"no checkpoint for epoch {epoch} in {directory} (have {manager.all_steps()})")
+    meta = manager.restore(step, args=ocp.args.Composite(**{META_ITEM: ocp.args.JsonRestore()}))[META_ITEM]
+    model = abstract_model(ERNetConfig.from_dict(meta["model_config"]))
+    graphdef, abstract = nnx.split(model)
+    target = jax.tree.map(ocp.utils.to_shape_dtype_struct, abstract)
+    restored = manager.restore(step, args=ocp.args.Composite(**{PARAMS_ITEM: ocp.args.StandardRestore(target)}))
+    manager.close()
+    return nnx.merge(graphdef, restored[PARAMS_ITEM]), meta
+

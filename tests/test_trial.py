@@ -1,0 +1,198 @@
+"""Grasp trials on real MuJoCo: outcomes, the phases' physics, refinements, backends, bad inputs."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from envs import gripper_model, trial
+from envs import scene as scene_lib
+from envs.objects import tiny_object_set
+from envs.trial import Outcome, Phase
+
+IDENTITY = [1.0, 0.0, 0.0, 0.0]
+# Approach straight down, closing along world x (y = z cross x = -y_world).
+DOWN = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])
+
+
+def grasp(rotation: np.ndarray, origin) -> np.ndarray:
+    pose = np.eye(4)
+    pose[:3, :3] = rotation
+    pose[:3, 3] = origin
+    return pose
+
+
+def axis_z(quat: np.ndarray) -> np.ndarray:
+    return Rotation.from_quat(np.roll(quat, -1)).as_matrix()[:, 2]
+
+
+@pytest.fixture(scope="module")
+def assets():
+    return {asset.name.split("/")[1]: asset for asset in tiny_object_set()}
+
+
+@pytest.fixture(scope="module")
+def pair(assets):
+    """Two 5 cm cubes on the table, 2 cm apart along x: object 0 at the origin, object 1 at x = 7 cm."""
+    cube = assets["box_a"]
+    return scene_lib.arrange_scene([cube, cube], [[0, 0, 0.026, *IDENTITY], [0.07, 0, 0.026, *IDENTITY]])
+
+
+# Grasps of cube 0, fingertips 2 cm above the table (gripper origin 7 cm up).
+ACROSS_X = grasp(DOWN, [0, 0, 0.07])
+IN_THE_AIR = grasp(DOWN, [0.2, 0.2, 0.07])
+
+
+def test_box_grasped_across_its_faces_is_lifted_reoriented_and_survives_the_disturbance(pair):
+    result = trial.run_trials(pair, 0, ACROSS_X[None], [0.065])
+    assert result.outcome.tolist() == [Outcome.SUCCESS]
+    assert result.label.tolist() == [True]
+    assert result.held[0, Phase.LIFT :].all() and not result.held[0, : Phase.LIFT].any()
+    start_z = pair.object_poses()[0, 2]
+    assert result.object_pose[0, Phase.LIFT, 2] > start_z + 0.9 * trial.TrialConfig().lift_height
+    np.testing.assert_allclose(result.opening[0, Phase.CLOSE], 0.05, atol=0.002)  # the cube's width
+    np.testing.assert_allclose(axis_z(result.gripper_pose[0, Phase.DISTURB, 3:]), [0, 0, -1], atol=0.01)
+    assert result.slip[0] < 0.003
+    assert result.max_speed[0] < 1.0
+
+
+def test_side_grasp_is_turned_until_the_approach_axis_points_down(assets):
+    # A 4 x 6 x 12 cm box standing, grasped from -x across its 4 cm faces.
+    quat = np.roll(Rotation.from_euler("z", 90, degrees=True).as_quat(), 1)
+    scene = scene_lib.arrange_scene([assets["box_b"]], [[0, 0, 0.061, *quat]])
+    side = np.stack([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]], axis=1)  # x_g = y, z_g = x
+    result = trial.run_trials(scene, 0, grasp(side, [-0.045, 0, 0.08])[None], [0.065])
+    assert result.outcome.tolist() == [Outcome.SUCCESS]
+    np.testing.assert_allclose(axis_z(result.gripper_pose[0, Phase.LIFT, 3:]), [1, 0, 0], atol=0.01)
+    np.testing.assert_allclose(axis_z(result.gripper_pose[0, Phase.HOLD, 3:]), [0, 0, -1], atol=0.01)
+    # The object turned with the gripper: its long (z) axis went from vertical to horizontal.
+    np.testing.assert_allclose(axis_z(result.object_pose[0, Phase.LIFT, 3:]), [0, 0, 1], atol=0.02)
+    np.testing.assert_allclose(axis_z(result.object_pose[0, Phase.HOLD, 3:]), [1, 0, 0], atol=0.02)
+
+
+def test_grasp_in_the_air_drops(pair):
+    result = trial.run_trials(pair, 0, IN_THE_AIR[None], [0.065])
+    assert result.outcome.tolist() == [Outcome.DROPPED_LIFT]
+    assert result.opening[0, Phase.CLOSE] < 0.002  # closed on nothing
+
+
+def test_grasp_through_a_neighbour_is_a_collision(pair):
+    # Width 7.5 cm puts the right finger (x = 3.75 ... 4.75 cm) into the neighbour (x >= 4.5 cm).
+    result = trial.run_trials(pair, 0, np.stack([ACROSS_X, ACROSS_X]), [0.075, 0.065])
+    assert result.outcome.tolist() == [Outcome.COLLISION_APPROACH, Outcome.SUCCESS]
+
+
+def test_gripper_placed_in_an_object_collides_before_the_approach(pair):
+    # 3 cm open with the fingertips 4 cm up at the pre-grasp: the fingers are inside the 5 cm cube.
+    origin_z = 0.04 + scene_lib.GripperSpec().finger_length - trial.TrialConfig().pregrasp_distance
+    inside = grasp(DOWN, [0, 0, origin_z])
+    pre = grasp(DOWN, [0.07, 0, 0.12])  # fingertips 7 cm up at the grasp: above cube 1, all free
+    result = trial.run_trials(pair, [0, 1], np.stack([inside, pre]), [0.03, 0.065])
+    assert result.outcome[0] == Outcome.COLLISION_PREGRASP
+    assert result.outcome[1] == Outcome.DROPPED_LIFT  # fingertips 7 cm up: above the cube, closes on air
+
+
+def test_weak_grip_holds_the_lift_but_slides_under_the_disturbance(assets):
+    config = scene_lib.SceneConfig(gripper_physics=gripper_model.GripperPhysics(grip_force=0.6))
+    scene = scene_lib.arrange_scene([assets["box_a"]], [[0, 0, 0.026, *IDENTITY]], config)
+    result = trial.run_trials(scene, 0, ACROSS_X[None], [0.065])
+    assert result.outcome.tolist() == [Outcome.DROPPED_DISTURBANCE]
+    assert result.held[0, Phase.HOLD]
+    # Approach points down: the object moving down relative to the fingers is +z in the gripper frame.
+    shift = result.object_in_gripper[0, Phase.DISTURB] - result.object_in_gripper[0, Phase.HOLD]
+    assert shift[2] > trial.TrialConfig().max_slip and abs(shift[0]) < 0.005
+    # Without the 1 N force the same grasp survives.
+    calm = trial.run_trials(scene, 0, ACROSS_X[None], [0.065], config=trial.TrialConfig(disturbance_force=0.0))
+    assert calm.outcome.tolist() == [Outcome.SUCCESS]
+
+
+def test_violent_simulation_is_invalid_never_success(pair):
+    result = trial.run_trials(pair, 0, ACROSS_X[None], [0.065], config=trial.TrialConfig(disturbance_force=1e4))
+    assert result.outcome.tolist() == [Outcome.INVALID]
+
+
+def test_early_stop_keeps_outcomes(pair):
+    poses = np.stack([ACROSS_X, ACROSS_X, IN_THE_AIR])
+    widths = [0.065, 0.075, 0.065]
+    fast = trial.run_trials(pair, 0, poses, widths)
+    full = trial.run_trials(pair, 0, poses, widths, config=trial.TrialConfig(early_stop=False, batch_size=2))
+    np.testing.assert_array_equal(fast.outcome, full.outcome)
+    np.testing.assert_allclose(fast.object_pose[0], full.object_pose[0])
+
+
+def test_refinements_give_four_labels_per_grasp(pair):
+    # Fingertips 7 cm up close on air; deepened by 8 mm they still do. At 2 cm they hold the cube.
+    poses = np.stack([grasp(DOWN, [0, 0, 0.12]), ACROSS_X])
+    labels, result = trial.run_grasp_with_refinements(pair, 0, poses, [0.065, 0.065])
+    assert labels.shape == (2, 4) and labels.dtype == bool
+    assert not labels[0].any()
+    # Cube grasped across x; rotated +-15 deg the 6.5 cm opening still clears the 5 cm cube.
+    assert labels[1].all()
+    deep = result.gripper_pose.reshape(2, 4, len(Phase), 7)[1, 2, Phase.CLOSE, :3]
+    np.testing.assert_allclose(deep, [0, 0, 0.07 - 0.008], atol=0.002)
+
+
+def test_schedule_reaches_the_grasp_and_turns_down():
+    spec = pair_spec = scene_lib.GripperSpec()
+    config = trial.TrialConfig()
+    schedule = trial.make_schedule(ACROSS_X[None], [0.06], spec, config)
+    steps = np.cumsum(schedule.phase_steps)
+    assert schedule.nstep == steps[-1] == sum(config.phase_steps(0.002))
+    pre = ACROSS_X[:3, 3] - config.pregrasp_distance * ACROSS_X[:3, 2]
+    np.testing.assert_allclose(schedule.init_qpos[0, :3], pre)
+    np.testing.assert_allclose(schedule.mocap_pos[0, steps[Phase.APPROACH] - 1], ACROSS_X[:3, 3])
+    assert schedule.finger_ctrl[0, 0] == pytest.approx(0.03)
+    assert schedule.finger_ctrl[0, steps[Phase.CLOSE] - 1] == pytest.approx(config.close_target)
+    np.testing.assert_allclose(axis_z(schedule.mocap_quat[0, -1]), [0, 0, -1], atol=1e-9)
+    assert schedule.phase_force[Phase.DISTURB] == 1.0 and schedule.phase_force.sum() == 1.0
+    again = trial.make_schedule(ACROSS_X[None], [0.06], pair_spec, config)
+    np.testing.assert_array_equal(again.mocap_quat, schedule.mocap_quat)
+
+
+def test_bad_inputs_raise_clear_errors(pair):
+    with pytest.raises(ValueError, match=r"shape \[M, 4, 4\]"):
+        trial.run_trials(pair, 0, np.eye(4), [0.05])
+    with pytest.raises(ValueError, match="widths must have shape"):
+        trial.run_trials(pair, 0, ACROSS_X[None], [0.05, 0.05])
+    sheared = ACROSS_X.copy()
+    sheared[0, 1] = 0.3
+    with pytest.raises(ValueError, match="not a rigid transform"):
+        trial.run_trials(pair, 0, sheared[None], [0.05])
+    mirrored = ACROSS_X.copy()
+    mirrored[:3, 0] *= -1
+    with pytest.raises(ValueError, match="not a rigid transform"):
+        trial.run_trials(pair, 0, mirrored[None], [0.05])
+    nan = ACROSS_X.copy()
+    nan[0, 3] = np.nan
+    with pytest.raises(ValueError, match="non-finite"):
+        trial.run_trials(pair, 0, nan[None], [0.05])
+    with pytest.raises(ValueError, match="max_opening"):
+        trial.run_trials(pair, 0, ACROSS_X[None], [0.09])
+    with pytest.raises(ValueError, match="max_opening"):
+        trial.run_trials(pair, 0, ACROSS_X[None], [-0.01])
+    with pytest.raises(ValueError, match="targets must be in"):
+        trial.run_trials(pair, 5, ACROSS_X[None], [0.05])
+    with pytest.raises(ValueError, match="one per grasp"):
+        trial.run_trials(pair, [0, 1, 0], ACROSS_X[None], [0.05])
+    with pytest.raises(ValueError, match="backend"):
+        trial.run_trials(pair, 0, ACROSS_X[None], [0.05], backend="bullet")
+    with pytest.raises(ValueError, match="GripperSpec"):
+        trial.run_trials(pair, 0, ACROSS_X[None], [0.05], spec=scene_lib.GripperSpec(max_opening=0.06, palm_size=(0.1, 0.03, 0.02)))
+    removed = scene_lib.remove_object(pair, 1, settle=False)
+    with pytest.raises(ValueError, match="removed"):
+        trial.run_trials(removed, 1, ACROSS_X[None], [0.05])
+
+
+@pytest.mark.slow
+def test_cpu_and_mjx_backends_agree(assets):
+    """Same trials on the C engine and MJX give the same outcomes (MJX compiles for ~20-60 s on CPU)."""
+    pytest.importorskip("mujoco.mjx")
+    scene = scene_lib.arrange_scene([assets["box_a"]], [[0, 0, 0.026, *IDENTITY]])
+    poses, widths = np.stack([ACROSS_X, IN_THE_AIR]), [0.065, 0.065]
+    cpu = trial.run_trials(scene, 0, poses, widths, backend="cpu")
+    mjx = trial.run_trials(scene, 0, poses, widths, backend="mjx")
+    assert cpu.outcome.tolist() == [Outcome.SUCCESS, Outcome.DROPPED_LIFT]
+    np.testing.assert_array_equal(mjx.outcome, cpu.outcome)
+    np.testing.assert_array_equal(mjx.held, cpu.held)
+    np.testing.assert_allclose(mjx.object_pose[0, :, :3], cpu.object_pose[0, :, :3], atol=0.01)

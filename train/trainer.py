@@ -1,0 +1,467 @@
+"""E-RNet training loop (paper Sec. IV-E): Adam + weight decay, batch 128, per-epoch metrics,
+orbax checkpoints every epoch with exact resume, progress bar, metrics.json / metrics.csv / curves.png.
+
+    from train.trainer import TrainConfig, train
+    result = train("shards/", "runs/ernet", TrainConfig(epochs=100))
+
+Determinism: the model init, the per-epoch shuffle (numpy, seeded by (seed, epoch)) and the per-step
+noise/shuffle keys (fold_in(seed, epoch, step)) depend only on the seed, so a run interrupted at any
+point and restarted with the same command continues from its last completed epoch and ends with the
+same parameters and metrics as an uninterrupted run (tests/test_training.py checks this).
+
+Weight decay: the paper uses "Adam with weight decay 3e-4" (PyTorch's torch.optim.Adam(weight_decay=),
+an L2 term added to the gradient before the Adam moments); that is optax.add_decayed_weights before
+optax.adam, our default. `decoupled_weight_decay=True` gives AdamW (optax.adamw) instead.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import functools
+import io
+import json
+import math
+import os
+import queue
+import threading
+from collections.abc import Callable, Iterable, Mapping
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from flax import nnx
+
+from sgjax.ernet import (
+    CHECKPOINT_DIR,
+    DEFAULT_SPEC,
+    META_ITEM,
+    OPT_STATE_ITEM,
+    PARAMS_ITEM,
+    ERNet,
+    ERNetConfig,
+    ernet_loss,
+    prepare_inputs,
+)
+from sgjax.files import atomic_write
+from sgjax.gripper import GripperSpec
+from train import dataset
+
+# ---------------------------------------------------------------------------------------------
+# Configuration.
+
+DEFAULT_MODEL = ERNetConfig()
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """Training settings (paper: 100 epochs, batch 128, Adam lr 1e-3, weight decay 3e-4).
+
+    held_out_fraction: share of scenes (not samples) held out for evaluation.
+    threshold: evaluation score above which a grasp counts as predicted stable (paper: 0.7).
+    decoupled_weight_decay: False = Adam + L2 (the paper, PyTorch Adam); True = AdamW.
+    prefetch: batches prepared ahead by the loader thread.
+    """
+
+    epochs: int = 100
+    batch_size: int = 128
+    lr: float = 1e-3
+    weight_decay: float = 3e-4
+    decoupled_weight_decay: bool = False
+    seed: int = 0
+    held_out_fraction: float = 0.1
+    threshold: float = 0.7
+    prefetch: int = 4
+    model: ERNetConfig = DEFAULT_MODEL
+    spec: GripperSpec = DEFAULT_SPEC
+
+    def __post_init__(self):
+        if self.epochs < 1 or self.batch_size < 1 or self.prefetch < 1:
+            raise ValueError("epochs, batch_size and prefetch must be >= 1")
+        if not self.lr > 0 or self.weight_decay < 0:
+            raise ValueError("lr must be > 0 and weight_decay >= 0")
+        if not 0.0 < self.threshold < 1.0:
+            raise ValueError("threshold must be in (0, 1)")
+
+    def resume_key(self) -> dict[str, Any]:
+        """Settings that must not change when a run is resumed (everything but `epochs`/`prefetch`)."""
+        d = dataclasses.asdict(self)
+        d.pop("epochs")
+        d.pop("prefetch")
+        return json.loads(json.dumps(d))  # tuples -> lists, as stored in JSON
+
+
+def make_optimizer(config: TrainConfig) -> optax.GradientTransformation:
+    if config.decoupled_weight_decay:
+        return optax.adamw(config.lr, weight_decay=config.weight_decay)
+    return optax.chain(optax.add_decayed_weights(config.weight_decay), optax.adam(config.lr))
+
+
+# ---------------------------------------------------------------------------------------------
+# Jitted steps.
+
+
+def _batch_stats(output, batch: dataset.Batch, weight, loss, parts, threshold: float) -> dict[str, jax.Array]:
+    """Weighted sums over one batch, accumulated on device and turned into metrics per epoch."""
+    p = output.eval_prob
+    label = batch.label.astype(jnp.int32)
+    predicted = p >= threshold
+    refine_ok = (output.refine_prob >= 0.5) == (batch.refine_labels == 1)
+    n = jnp.sum(weight)
+    return {
+        "n": n,
+        "skipped": jnp.sum(batch.weight * (weight == 0)),
+        "loss": loss * n,
+        "eval_loss": parts["eval"] * n,
+        "refine_loss": parts["refine"] * n,
+        "correct": jnp.sum(weight * (jnp.argmax(output.eval_logits, -1) == label)),
+        "tp": jnp.sum(weight * (predicted & (label == 1))),
+        "fp": jnp.sum(weight * (predicted & (label == 0))),
+        "fn": jnp.sum(weight * (~predicted & (label == 1))),
+        "refine_correct": jnp.sum(weight[:, None] * refine_ok, axis=0),
+    }
+
+
+def make_steps(graphdef: nnx.GraphDef, config: TrainConfig):
+    """-> (tx, train_step, eval_step), the steps jitted once per batch shape and shared by every
+    `train` call with the same model and optimiser settings (a resumed run with more epochs, a
+    notebook re-run: no recompilation).
+
+    train_step(params, opt_state, batch, key) -> (params, opt_state, stats)
+    eval_step(params, batch, key) -> stats  (no noise; `key` fixes the downsampling)
+    """
+    # Only what the steps depend on is the cache key (not epochs, seed, split, prefetch).
+    step_config = dataclasses.replace(config, epochs=1, seed=0, held_out_fraction=0.0, prefetch=1)
+    return _make_steps(graphdef, step_config)
+
+
+@functools.lru_cache(maxsize=8)
+def _make_steps(graphdef: nnx.GraphDef, config: TrainConfig):
+    model_config, spec = config.model, config.spec
+    tx = make_optimizer(config)
+
+    def forward(params, batch: dataset.Batch, key, noise_std: float):
+        model = nnx.merge(graphdef, params)
+        inputs = prepare_inputs(
+            batch.region, batch.region_mask, batch.width, spec, model_config, key=key, noise_std=noise_std
+        )
+        # Samples without a point in the initial closing region have no anchor feature: excluded.
+        weight = batch.weight * inputs.valid
+        output = model(inputs)
+        loss, parts = ernet_loss(output, batch.label, batch.refine_labels, model_config, weight)
+        return loss, (output, parts, weight)
+
+    def train_step(params, opt_state, batch, key):
+        grad_fn = jax.value_and_grad(forward, has_aux=True)
+        (loss, (output, parts, weight)), grads = grad_fn(params, batch, key, model_config.noise_std)
+        updates, opt_state = tx.update(grads, opt_state, params)
+        params = optax.apply_updates(params, updates)
+        return params, opt_state, _batch_stats(output, batch, weight, loss, parts, config.threshold)
+
+    def eval_step(params, batch, key):
+        loss, (output, parts, weight) = forward(params, batch, key, 0.0)
+        return _batch_stats(output, batch, weight, loss, parts, config.threshold)
+
+    return tx, jax.jit(train_step, donate_argnums=(0, 1)), jax.jit(eval_step)
+
+
+def summarise(stats: Mapping[str, Any]) -> dict[str, Any]:
+    """Summed batch stats -> metrics (None where undefined, e.g. precision with no positive call)."""
+    s = {k: np.asarray(v, np.float64) for k, v in stats.items()}
+    n = float(s["n"])
+
+    def ratio(a, b):
+        return float(a / b) if b > 0 else None
+
+    return {
+        "samples": int(n),
+        "skipped_no_anchor": int(s["skipped"]),
+        "loss": ratio(s["loss"], n),
+        "eval_loss": ratio(s["eval_loss"], n),
+        "refine_loss": ratio(s["refine_loss"], n),
+        "accuracy": ratio(s["correct"], n),
+        "precision": ratio(s["tp"], s["tp"] + s["fp"]),
+        "recall": ratio(s["tp"], s["tp"] + s["fn"]),
+        "refine_accuracy": [ratio(c, n) for c in s["refine_correct"]],
+    }
+
+
+# ---------------------------------------------------------------------------------------------
+# Data loading.
+
+
+class Prefetcher:
+    """Builds batches (array slices of preloaded columns) and puts them on the device in a thread,
+    `depth` batches ahead, so the host prepares batch i+1 while the device runs batch i."""
+
+    _END = object()
+
+    def __init__(self, samples: Mapping[str, np.ndarray], batches: Iterable[tuple[np.ndarray, np.ndarray]], depth: int):
+        self._queue: queue.Queue = queue.Queue(maxsize=depth)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, args=(samples, batches), daemon=True)
+        self._thread.start()
+
+    def _run(self, samples, batches):
+        try:
+            for index, weight in batches:
+                item = jax.device_put(dataset.make_batch(samples, index, weight))
+                while not self._stop.is_set():
+                    try:
+                        self._queue.put(item, timeout=0.1)
+                        break
+                    except queue.Full:
+                        continue
+                if self._stop.is_set():
+                    return
+            self._queue.put(self._END)
+        except Exception as exc:  # noqa: BLE001 - re-raised in the consumer thread
+            self._queue.put(exc)
+
+    def __iter__(self):
+        while True:
+            item = self._queue.get()
+            if item is self._END:
+                return
+            if isinstance(item, BaseException):
+                raise item
+            yield item
+
+    def close(self):
+        self._stop.set()
+        self._thread.join(timeout=5)
+
+
+# ---------------------------------------------------------------------------------------------
+# Outputs.
+
+
+METRIC_COLUMNS = ("loss", "eval_loss", "refine_loss", "accuracy", "precision", "recall")
+
+
+def _csv_text(history: list[dict[str, Any]]) -> str:
+    header = ["epoch"]
+    for split in ("train", "held_out"):
+        header += [f"{split}_{m}" for m in METRIC_COLUMNS] + [f"{split}_refine_accuracy_{v}" for v in range(3)]
+    out = io.StringIO()
+    writer = csv.writer(out)
+    writer.writerow(header)
+    for record in history:
+        row: list[Any] = [record["epoch"]]
+        for split in ("train", "held_out"):
+            m = record.get(split) or {}
+            row += [m.get(k) for k in METRIC_COLUMNS]
+            row += list(m.get("refine_accuracy") or [None] * 3)
+        writer.writerow(["" if v is None else v for v in row])
+    return out.getvalue()
+
+
+def plot_curves(history: list[dict[str, Any]], path: str) -> None:
+    """Loss, accuracy, precision/recall at the threshold and refine accuracy per epoch (PNG, Agg)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(12, 8))
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(2, 2)
+    epochs = [r["epoch"] for r in history]
+
+    def series(split, key, index=None):
+        values = []
+        for r in history:
+            m = r.get(split) or {}
+            v = m.get(key)
+            v = v[index] if (v is not None and index is not None) else v
+            values.append(np.nan if v is None else v)
+        return values
+
+    panels = [
+        (axes[0, 0], "loss", [("loss", None)]),
+        (axes[0, 1], "evaluation accuracy", [("accuracy", None)]),
+        (axes[1, 0], "precision / recall (eval score >= threshold)", [("precision", None), ("recall", None)]),
+        (axes[1, 1], "refinement accuracy per variant", [("refine_accuracy", v) for v in range(3)]),
+    ]
+    for ax, title, keys in panels:
+        for split, style in (("train", "-"), ("held_out", "--")):
+            for key, index in keys:
+                label = f"{split} {key}" + ("" if index is None else f" {index}")
+                ax.plot(epochs, series(split, key, index), style, marker="o", markersize=3, label=label)
+        ax.set_title(title)
+        ax.set_xlabel("epoch")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=100))
+
+
+def _write_outputs(run_dir: str, history: list[dict[str, Any]], config: TrainConfig) -> None:
+    record = {"train_config": json.loads(json.dumps(dataclasses.asdict(config))), "history": history}
+    atomic_write(os.path.join(run_dir, "metrics.json"), lambda tmp: _write_text(tmp, json.dumps(record, indent=1)))
+    atomic_write(os.path.join(run_dir, "metrics.csv"), lambda tmp: _write_text(tmp, _csv_text(history)))
+    plot_curves(history, os.path.join(run_dir, "curves.png"))
+
+
+def _write_text(path: str, text: str) -> None:
+    with open(path, "w") as f:
+        f.write(text)
+
+
+# ---------------------------------------------------------------------------------------------
+# Training.
+
+
+@dataclasses.dataclass
+class TrainResult:
+    model: ERNet
+    history: list[dict[str, Any]]
+    run_dir: str
+
+
+def _checkpoint_manager(run_dir: str):
+    import orbax.checkpoint as ocp
+
+    options = ocp.CheckpointManagerOptions(max_to_keep=3, enable_async_checkpointing=False, cleanup_tmp_directories=True)
+    return ocp.CheckpointManager(os.path.abspath(os.path.join(run_dir, CHECKPOINT_DIR)), options=options)
+
+
+def _load_data(data: str | os.PathLike | Mapping[str, np.ndarray], config: TrainConfig):
+    samples = dataset.read_shards(data) if isinstance(data, (str, os.PathLike)) else dataset.validate(data, "data")
+    samples = dataset.select(samples, np.flatnonzero(samples["valid"]))
+    if dataset.num_samples(samples) == 0:
+        raise dataset.DatasetError("no valid samples to train on")
+    train_index, held_index = dataset.split_by_scene(samples["scene_seed"], config.held_out_fraction, config.seed)
+    if len(train_index) == 0:
+        raise dataset.DatasetError("every scene fell into the held-out split; lower held_out_fraction")
+    keep = dataset.TRAIN_FIELDS
+    train_set = {k: np.ascontiguousarray(samples[k][train_index]) for k in keep}
+    held_set = {k: np.ascontiguousarray(samples[k][held_index]) for k in keep}
+    return train_set, held_set
+
+
+def train(
+    data: str | os.PathLike | Mapping[str, np.ndarray],
+    run_dir: str | os.PathLike,
+    config: TrainConfig = TrainConfig(),
+    *,
+    progress: bool = True,
+    on_step: Callable[[int, int], None] | None = None,
+) -> TrainResult:
+    """Train E-RNet on shards in `data` (a directory, or validated columns), writing to `run_dir`.
+
+    Resumes from the last epoch checkpoint in `run_dir` if there is one (same settings required,
+    `epochs` may grow). `on_step(epoch, step)` is called after every training step (e.g. logging).
+    Writes run_dir/{checkpoints/, metrics.json, metrics.csv, curves.png}.
+    """
+    import orbax.checkpoint as ocp
+    from tqdm.auto import tqdm
+
+    run_dir = os.fspath(run_dir)
+    os.makedirs(run_dir, exist_ok=True)
+    if config.model.n_refinements != config.spec.num_refinements:
+        raise ValueError("model n_refinements must equal the gripper spec's refinement count")
+    train_set, held_set = _load_data(data, config)
+    n_train, n_held = len(train_set["label"]), len(held_set["label"])
+
+    model = ERNet(config.model, rngs=nnx.Rngs(config.seed))
+    graphdef, params = nnx.split(model)
+    tx, train_step, eval_step = make_steps(graphdef, config)
+    opt_state = tx.init(params)
+
+    manager = _checkpoint_manager(run_dir)
+    history: list[dict[str, Any]] = []
+    start = manager.latest_step() or 0
+    fingerprint = {"config": config.resume_key(), "n_train": n_train, "n_held_out": n_held}
+    if start:
+        meta = manager.restore(start, args=ocp.args.Composite(**{META_ITEM: ocp.args.JsonRestore()}))[META_ITEM]
+        if meta["fingerprint"] != fingerprint:
+            raise ValueError(
+                f"{run_dir} holds a run with other settings or data ({meta['fingerprint']}); "
+                "use a new --out directory or the same settings to resume"
+            )
+        abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, {PARAMS_ITEM: params, OPT_STATE_ITEM: opt_state})
+        restored = manager.restore(
+            start,
+            args=ocp.args.Composite(**{k: ocp.args.StandardRestore(v) for k, v in abstract.items()}),
+        )
+        params, opt_state = restored[PARAMS_ITEM], restored[OPT_STATE_ITEM]
+        history = meta["history"]
+        if progress:
+            print(f"resuming {run_dir} after epoch {start}")
+    # Restored arrays are committed to a device; commit fresh ones too, or the jitted step would
+    # compile a second time for a resumed run (committedness is part of jit's cache key).
+    params, opt_state = jax.device_put((params, opt_state), jax.devices()[0])
+
+    base_key = jax.random.key(config.seed)
+    eval_key = jax.random.fold_in(base_key, 1 << 30)  # apart from the epoch keys
+    n_batches = math.ceil(n_train / config.batch_size)
+    try:
+        for epoch in range(start, config.epochs):
+            epoch_key = jax.random.fold_in(base_key, epoch)
+            rng = np.random.default_rng([config.seed, epoch])
+            loader = Prefetcher(train_set, dataset.batch_indices(n_train, config.batch_size, rng), config.prefetch)
+            totals = None
+            bar = tqdm(total=n_batches, desc=f"epoch {epoch + 1}/{config.epochs}", disable=not progress, leave=False)
+            try:
+                for step, batch in enumerate(loader):
+                    params, opt_state, stats = train_step(params, opt_state, batch, jax.random.fold_in(epoch_key, step))
+                    totals = stats if totals is None else jax.tree.map(jnp.add, totals, stats)
+                    bar.update(1)
+                    if step % 20 == 0:
+                        bar.set_postfix(loss=f"{float(stats['loss'] / jnp.maximum(stats['n'], 1)):.4f}")
+                    if on_step is not None:
+                        on_step(epoch, step)
+            finally:
+                bar.close()
+                loader.close()
+            record = {"epoch": epoch + 1, "train": summarise(totals), "held_out": None}
+            if n_held:
+                record["held_out"] = evaluate_params(eval_step, params, held_set, config.batch_size, eval_key)
+            history.append(record)
+            meta = {
+                "epochs_done": epoch + 1,
+                "history": history,
+                "model_config": config.model.to_dict(),
+                "fingerprint": fingerprint,
+            }
+            manager.save(
+                epoch + 1,
+                args=ocp.args.Composite(
+                    **{
+                        PARAMS_ITEM: ocp.args.StandardSave(params),
+                        OPT_STATE_ITEM: ocp.args.StandardSave(opt_state),
+                        META_ITEM: ocp.args.JsonSave(meta),
+                    }
+                ),
+            )
+            manager.wait_until_finished()
+            _write_outputs(run_dir, history, config)
+            if progress:
+                print(_epoch_line(record))
+    finally:
+        manager.close()
+    return TrainResult(nnx.merge(graphdef, params), history, run_dir)
+
+
+def evaluate_params(eval_step, params, samples: Mapping[str, np.ndarray], batch_size: int, key) -> dict[str, Any]:
+    """Metrics of `params` on preloaded columns (fixed-size padded batches, no noise)."""
+    totals = None
+    n = len(samples["label"])
+    for i, (index, weight) in enumerate(dataset.batch_indices(n, batch_size, None)):
+        stats = eval_step(params, jax.device_put(dataset.make_batch(samples, index, weight)), jax.random.fold_in(key, i))
+        totals = stats if totals is None else jax.tree.map(jnp.add, totals, stats)
+    return summarise(totals)
+
+
+def _epoch_line(record: Mapping[str, Any]) -> str:
+    def fmt(m):
+        if not m:
+            return "-"
+        def f(v):
+            return "n/a" if v is None else f"{v:.3f}"
+
+        ra = "/".join(f(v) for v in m["refine_accuracy"])
+        return f"loss {f(m['loss'])} acc {f(m['accuracy'])} P {f(m['precision'])} R {f(m['recall'])} refine {ra}"
+
+    return f"epoch {record['epoch']}: train {fmt(record['train'])} | held-out {fmt(record['held_out'])}"
