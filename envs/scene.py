@@ -31,6 +31,7 @@ TABLE_GROUP = 0
 VISUAL_GROUP = 1
 HULL_GROUP = 3
 STATE_SPEC = mujoco.mjtState.mjSTATE_INTEGRATION
+TABLE_PLANE = (0.0, 0.0, 1.0, 0.0)  # the table top z = 0 as (n, d): free space n . x + d > 0
 # Geom -> object map values that are not object indices.
 TABLE = -1
 OTHER = -2
@@ -140,6 +141,13 @@ class Scene:
     def geom_object(self) -> np.ndarray:
         """[ngeom] object index of each geom; TABLE for the table, OTHER for everything else."""
         return geom_object_map(self.model, self.body_ids)
+
+
+def workspace_bounds(config: SceneConfig = SceneConfig(), margin: float = 0.05) -> tuple[tuple, tuple]:
+    """(lo [3], hi [3]) box of the workspace grown by `margin`, from just below the table top to 1 m
+    above: the crop of the Stage-2 scene cloud in labelling and planning alike."""
+    half = 0.5 * config.workspace_size + margin
+    return (-half, -half, -0.01), (half, half, 1.0)
 
 
 def geom_object_map(model: mujoco.MjModel, body_ids: np.ndarray) -> np.ndarray:
@@ -450,6 +458,32 @@ def _finish(model, data, assets, body_ids, present, seed, config, gripper, at_re
         gripper=gripper,
         at_rest=at_rest,
     )
+
+
+def after_trial(scene: Scene, qpos: np.ndarray) -> Scene:
+    """The scene as a grasp trial left it: objects at their poses in qpos [nq] (a trial's final_qpos),
+    the gripper gone (back home), everything released at rest and re-settled; objects that left the
+    workspace are removed. A failed grasp that knocked or dropped objects changes the scene for the next
+    attempt, as on a real table. Non-finite qpos (an invalid trial) leaves the scene unchanged.
+    """
+    qpos = np.asarray(qpos, np.float64)
+    if qpos.shape != (scene.model.nq,):
+        raise ValueError(f"qpos must have shape [{scene.model.nq}], got {qpos.shape}")
+    if not np.isfinite(qpos).all():
+        return scene
+    model = scene.model
+    data = scene.data()
+    present = scene.present.copy()
+    qadr, vadr = _free_adr(model, scene.body_ids)
+    for index in np.flatnonzero(present):
+        pose = qpos[qadr[index] : qadr[index] + 7].copy()
+        pose[3:] /= np.linalg.norm(pose[3:])
+        data.qpos[qadr[index] : qadr[index] + 7] = pose
+        data.qvel[vadr[index] : vadr[index] + 6] = 0.0
+    mujoco.mj_forward(model, data)
+    at_rest = _settle(model, data, scene.body_ids, present, scene.config)
+    _remove_outside(model, data, scene.body_ids, present, scene.config)
+    return _finish(model, data, scene.assets, scene.body_ids, present, scene.seed, scene.config, scene.gripper, at_rest)
 
 
 def remove_object(scene: Scene, index: int, settle: bool = True) -> Scene:

@@ -21,6 +21,24 @@ def object_vertices(scene: scene_lib.Scene, index: int) -> np.ndarray:
     return mesh.vertices @ rotation.T + pose[:3]
 
 
+def top_down_pose(vertices: np.ndarray, closing: np.ndarray, tips: float, spec) -> tuple[np.ndarray | None, float]:
+    """A straight-down grasp closing along the horizontal part of `closing` [3], centred on the
+    vertices' [V, 3] extent, fingertips at height `tips` -> (pose [4, 4] or None if `closing` is
+    vertical, the vertices' extent along the closing axis)."""
+    x = np.array([closing[0], closing[1], 0.0])
+    if np.linalg.norm(x) < 1e-6:
+        return None, 0.0
+    x /= np.linalg.norm(x)
+    z = np.array([0.0, 0.0, -1.0])
+    y = np.cross(z, x)
+    along_x, along_y = vertices @ x, vertices @ y
+    centre = 0.5 * (along_x.max() + along_x.min()) * x + 0.5 * (along_y.max() + along_y.min()) * y
+    pose = np.eye(4)
+    pose[:3, :3] = np.stack([x, y, z], axis=1)
+    pose[:3, 3] = [centre[0], centre[1], tips + spec.finger_length]
+    return pose, float(along_x.max() - along_x.min())
+
+
 def top_down_grasps(
     scene: scene_lib.Scene, index: int, depth: float = 0.03, table_clearance: float = 0.01
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -38,19 +56,10 @@ def top_down_grasps(
     vertical = int(np.argmax(np.abs(rotation[2])))
     poses, widths = [], []
     for axis in (a for a in range(3) if a != vertical):
-        x = rotation[:, axis].copy()
-        x[2] = 0.0
-        x /= np.linalg.norm(x)
-        z = np.array([0.0, 0.0, -1.0])
-        y = np.cross(z, x)
-        along_x, along_y = vertices @ x, vertices @ y
-        width = along_x.max() - along_x.min() + 2 * spec.contact_threshold
-        if width > spec.max_opening:
+        pose, extent = top_down_pose(vertices, rotation[:, axis], tips, spec)
+        width = extent + 2 * spec.contact_threshold
+        if pose is None or width > spec.max_opening:
             continue
-        centre = 0.5 * (along_x.max() + along_x.min()) * x + 0.5 * (along_y.max() + along_y.min()) * y
-        pose = np.eye(4)
-        pose[:3, :3] = np.stack([x, y, z], axis=1)
-        pose[:3, 3] = [centre[0], centre[1], tips + spec.finger_length]
         poses.append(pose)
         widths.append(width)
     return np.reshape(poses, (-1, 4, 4)), np.asarray(widths)

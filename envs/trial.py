@@ -185,6 +185,8 @@ class TrialResult:
     held: [M, P] the "held" test at the end of each phase.
     slip: [M] how far the target moved in the gripper frame during DISTURB (m).
     max_speed: [M] fastest object speed over the trial (m/s).
+    final_qpos: [M, nq] joint positions where each trial ended (or stopped early): what a failed grasp
+        did to the scene (`envs.scene.after_trial`).
     """
 
     outcome: np.ndarray
@@ -195,6 +197,7 @@ class TrialResult:
     held: np.ndarray
     slip: np.ndarray
     max_speed: np.ndarray
+    final_qpos: np.ndarray
 
     @property
     def label(self) -> np.ndarray:
@@ -534,6 +537,7 @@ def classify(judge: Judge, rollout: Rollout) -> TrialResult:
         held=np.stack([judge.held(rollout, phase, rows) for phase in Phase], axis=1),
         slip=judge.slip(rollout, rows),
         max_speed=max_speed,
+        final_qpos=rollout.end_qpos[:, -1],
     )
 
 

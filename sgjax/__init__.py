@@ -9,14 +9,32 @@ from sgjax.superquadric import Superquadric
 
 __version__ = "0.1.0"
 
+# The planner pulls in Flax and the primitive database: import it on first use only.
+_LAZY = {"plan": "sgjax.planner", "Planner": "sgjax.planner", "PlannerConfig": "sgjax.planner",
+         "generate_candidates": "sgjax.stage1", "Stage1": "sgjax.stage1"}
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'sgjax' has no attribute {name!r}")
+
+
 __all__ = [
     "CloudError",
+    "Planner",
+    "PlannerConfig",
+    "Stage1",
     "EMSConfig",
     "FitResult",
     "Superquadric",
     "describe_status",
     "fit_superquadric",
     "fit_superquadrics",
+    "generate_candidates",
     "load_cloud",
     "pad_clouds",
+    "plan",
 ]

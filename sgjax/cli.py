@@ -157,6 +157,13 @@ def _cmd_train(args: argparse.Namespace) -> int:
     from sgjax.ernet import ERNetConfig
     from train import dataset, trainer
 
+    network, run = ERNetConfig, trainer.train
+    if args.network == "pointnetgpd":  # the baseline, on the same shards (train/train_pointnetgpd.py)
+        from sgjax.pointnetgpd import PointNetGPDConfig
+        from train import train_pointnetgpd
+
+        network, run = PointNetGPDConfig, train_pointnetgpd.train
+
     if args.synthetic:
         os.makedirs(args.data, exist_ok=True)
         if dataset.shard_paths(args.data):
@@ -171,16 +178,40 @@ def _cmd_train(args: argparse.Namespace) -> int:
         decoupled_weight_decay=args.decoupled_weight_decay,
         seed=args.seed,
         held_out_fraction=args.held_out,
-        model={"paper": ERNetConfig.paper, "light": ERNetConfig.light, "tiny": ERNetConfig.tiny}[args.model](),
+        model={"paper": network.paper, "light": network.light, "tiny": network.tiny}[args.model](),
     )
     try:
-        result = trainer.train(args.data, args.out, config, progress=not args.quiet)
+        result = run(args.data, args.out, config, progress=not args.quiet)
     except (dataset.DatasetError, ValueError) as exc:
         return _fail(str(exc))
     except KeyboardInterrupt:
         print(f"\ninterrupted: rerun the same command to resume after the last finished epoch in {args.out}", file=sys.stderr)
         return 130
     print(f"done: {len(result.history)} epochs; checkpoints, metrics.json/.csv and curves.png in {result.run_dir}")
+    return 0
+
+
+def _cmd_label(args: argparse.Namespace) -> int:
+    from sgjax.primitive_db import DBConfig, load_database
+    from sgjax.stage1 import Stage1
+    from train import label
+
+    try:
+        config = label.LabelConfig(
+            n_objects=args.n_objects, grasps_per_scene=args.grasps_per_scene, object_set=args.objects, seed=args.seed
+        )
+        stage1 = Stage1(load_database(DBConfig.small()), config.stage1) if args.small_db else None
+        summary = label.label(
+            args.out, args.scenes, config, stage1=stage1, backend=args.backend, nthread=args.threads, progress=not args.quiet
+        )
+    except (ValueError, FileNotFoundError) as exc:
+        return _fail(str(exc))
+    except KeyboardInterrupt:
+        print(f"\ninterrupted: rerun the same command to continue; finished shards in {args.out} are kept", file=sys.stderr)
+        return 130
+    print(f"labelled {args.out}:")
+    for line in summary.lines():
+        print(f"  {line}")
     return 0
 
 
@@ -237,6 +268,108 @@ def _cmd_candidates(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_plan(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from sgjax.pointcloud import CloudError, load_cloud
+    from sgjax.primitive_db import DBConfig, load_database, load_database_file
+
+    try:
+        cloud = load_cloud(args.cloud)
+        if not os.path.isfile(args.mask):
+            raise CloudError(f"{args.mask}: no such file")
+        try:
+            mask = np.load(args.mask, allow_pickle=False)
+        except (OSError, ValueError, EOFError) as exc:
+            raise CloudError(f"{args.mask}: cannot read the mask ({type(exc).__name__}: {exc})") from None
+        if mask.shape != (len(cloud),) or mask.dtype.kind not in "biu":
+            raise CloudError(
+                f"{args.mask}: the mask must be bool [N] (target) or int [N] (object labels) with N = {len(cloud)} "
+                f"(the cloud's points), got {mask.dtype} {mask.shape}"
+            )
+        from sgjax.planner import Planner
+
+        db = load_database_file(args.db) if args.db else load_database(DBConfig.small() if args.small_db else DBConfig())
+        planner = Planner(model=args.model, db=db)
+        viewpoint = (0.0, 0.0, 0.0) if args.viewpoint is None else tuple(args.viewpoint)
+        if mask.dtype == bool:
+            plan = planner.plan_masked(cloud, mask, viewpoint, seed=args.seed)
+        else:
+            plan = planner.plan(cloud, mask, viewpoint, seed=args.seed)
+    except (CloudError, ValueError, FileNotFoundError) as exc:
+        return _fail(str(exc))
+    t = plan.timing
+    timing = f"stage 1 {t['stage1_s']:.3f} s, stage 2 {t['stage2_s']:.3f} s, total {t['total_s']:.3f} s"
+    if t.get("compiled"):
+        timing += " (includes compilation)"
+    if args.json:
+        print(json.dumps(plan.to_dict()))
+    elif plan.kind is None:
+        print(f"no grasp: {plan.reason}  ({plan.n_candidates} candidates)")
+        print(f"  {timing}")
+    else:
+        pos, app = (np.round(plan.pose[:3, k], 4).tolist() for k in (3, 2))
+        how = f"refined (variant {plan.refine_variant})" if plan.kind == "refined" else "evaluated"
+        print(f"{how} grasp on object {plan.target}: score {plan.score:.3f}, candidate #{plan.candidate_index} "
+              f"of {len(plan.scores['eval_prob'])} scored ({plan.n_candidates} from Stage 1)")
+        print(f"  position {pos}  approach {app}  width {plan.width:.4f} m")
+        print(f"  {timing}")
+    if args.png:
+        from sgjax.draw import draw_grasps
+
+        if mask.dtype == bool:
+            target = cloud[mask]
+        else:
+            target = cloud[mask == plan.target] if plan.target is not None else cloud[mask >= 0]
+        poses = None if plan.pose is None else plan.pose[None]
+        widths = None if plan.pose is None else np.array([plan.width])
+        title = f"{plan.kind} grasp, score {plan.score:.2f}" if plan.kind else f"no grasp: {plan.reason}"[:90]
+        draw_grasps(args.png, target if len(target) else cloud, poses, widths, scene_points=cloud, title=title)
+        if not args.json:
+            print(f"wrote {args.png}")
+    return 0 if plan.kind is not None else 1
+
+
+def _cmd_declutter(args: argparse.Namespace) -> int:
+    from eval.benchmark import result_json, run_benchmark
+    from eval.declutter import DeclutterConfig
+    from eval.methods import MethodUnavailable
+    from eval.report import percent
+
+    options = {"model": args.model, "small_db": args.small_db}
+    try:
+        result = run_benchmark(
+            args.method,
+            setting=args.setting,
+            scenes=args.scenes,
+            seed=args.seed,
+            out=args.out,
+            objects=args.objects,
+            n_objects=args.n_objects,
+            method_options=options,
+            config=DeclutterConfig(backend=args.backend),
+            pictures=args.pictures,
+            progress=not args.quiet,
+        )
+    except (ValueError, MethodUnavailable, FileNotFoundError) as exc:  # UnknownMethod is a ValueError
+        return _fail(str(exc))
+    except KeyboardInterrupt:
+        print(f"\ninterrupted: rerun the same command to continue with the scenes not logged in {args.out}", file=sys.stderr)
+        return 130
+    if args.json:
+        print(result_json(result))
+        return 0
+    s = result.summary
+    print(f"{result.method} on {result.setting} (seed {result.seed}): {s.scenes} scenes, {s.objects} objects")
+    print(f"  GSR {percent(s.gsr)}  TSR {percent(s.tsr)}  GA {s.ga}  ({s.successes} successes, {s.cleared} scenes cleared)")
+    t = result.timing["total_s"]
+    if t[2]:
+        print(f"  planning per grasp: {t[0]:.3f} ± {t[1]:.3f} s (stage 1 {result.timing['stage1_s'][0]:.3f} s, "
+              f"stage 2 {result.timing['stage2_s'][0]:.3f} s)")
+    print(f"  {result.ran} scene(s) run now, {result.resumed} resumed; tables: {result.tables['results.md']}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="sgjax", description="SuperGrasp in JAX + MuJoCo")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -279,6 +412,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=_cmd_candidates)
 
+    p = sub.add_parser(
+        "plan",
+        help="plan one grasp: Stage-1 candidates, E-RNet evaluation and refinement (exit 1: no grasp)",
+        description="Plan one grasp (SuperGrasp Stage 1 + Stage 2). Exit status: 0 a grasp, 1 no grasp "
+        "(the reason is printed), 2 bad input or a missing model/database.",
+    )
+    p.add_argument("cloud", help="scene cloud: .npy (N x 3, metres), .ply or .pcd")
+    p.add_argument(
+        "--mask", required=True, help=".npy, one entry per point: bool (the target) or int object labels (< 0: background)"
+    )
+    p.add_argument("--viewpoint", type=float, nargs=3, metavar=("X", "Y", "Z"), help="camera position (default: origin)")
+    p.add_argument("--model", metavar="RUN_DIR", help="an E-RNet `sgjax train` run directory (default: the shipped model)")
+    p.add_argument("--db", help="a primitive database file (default: the cached default database)")
+    p.add_argument("--small-db", action="store_true", help="use the small database (built in seconds)")
+    p.add_argument("--json", action="store_true", help="print the plan as JSON")
+    p.add_argument("--png", metavar="OUT.png", help="draw the cloud with the chosen grasp")
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=_cmd_plan)
+
     objects_parser = sub.add_parser("objects", help="object sets for simulation: prepare (cached) and list")
     objects_sub = objects_parser.add_subparsers(dest="objects_command", required=True)
     for command, func, help_text in (
@@ -311,12 +463,55 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--decoupled-weight-decay", action="store_true", help="AdamW instead of Adam + L2 (the paper)")
     p.add_argument("--held-out", type=float, default=0.1, help="fraction of scenes held out (default 0.1)")
     p.add_argument(
-        "--model", choices=("light", "paper", "tiny"), default="light", help="E-RNet size (light: CPU default; tiny: smoke tests)"
+        "--model", choices=("light", "paper", "tiny"), default="light", help="network size (light: CPU default; tiny: smoke tests)"
+    )
+    p.add_argument(
+        "--network", choices=("ernet", "pointnetgpd"), default="ernet",
+        help="ernet (default) or the PointNetGPD baseline (trained on the same shards, `label` only)",
     )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--synthetic", type=int, default=0, metavar="N", help="first write N synthetic samples to --data")
     p.add_argument("--quiet", action="store_true", help="no progress bar or per-epoch lines")
     p.set_defaults(func=_cmd_train)
+
+    p = sub.add_parser("label", help="label grasps in simulated scenes for E-RNet training (resumable)")
+    p.add_argument("--scenes", type=int, required=True, help="scenes 0..N-1 (rerun with a larger N to extend)")
+    p.add_argument("--out", required=True, help="directory of .npz shards (train/dataset.py format)")
+    p.add_argument("--objects", default="seen", help="object set name or a folder of meshes (default: seen)")
+    p.add_argument("--backend", choices=("cpu", "mjx"), default="cpu", help="trial engine (default: cpu)")
+    p.add_argument("--n-objects", type=int, default=5, help="objects per scene (paper: 5)")
+    p.add_argument("--grasps-per-scene", type=int, default=16, help="candidates executed per scene (+3 refinements each)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--small-db", action="store_true", help="the small primitive database (tests, quick runs)")
+    p.add_argument("--threads", type=int, default=0, help="simulation threads (default: all cores)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=_cmd_label)
+    p = sub.add_parser(
+        "declutter",
+        help="decluttering benchmark in simulation (paper Table I): GSR, TSR, GA over N scenes; resumable",
+    )
+    p.add_argument("--setting", default="seen-10", help="seen-10 | seen-20 | unseen-10 (default seen-10)")
+    p.add_argument("--scenes", type=int, default=30, help="scenes to run (paper: 30)")
+    p.add_argument(
+        "--method",
+        required=True,
+        help="supergrasp | supergrasp-norefine | gpd | pointnetgpd | s1+pointnetgpd | gpd+s2 | contact-graspnet | "
+        "oracle-topdown (diagnostic, reads ground truth)",
+    )
+    p.add_argument("--objects", metavar="DIR", help="a folder of meshes (or an object set name) instead of the setting's")
+    p.add_argument("--n-objects", type=int, help="objects per scene instead of the setting's (smoke runs)")
+    p.add_argument("--seed", type=int, default=0, help="scene seeds derive from it: same seed, same scenes for every method")
+    p.add_argument("--out", default="declutter_results", help="logs, pictures, results.md/.csv (default declutter_results)")
+    p.add_argument(
+        "--model", metavar="RUN_DIR",
+        help="the method's network run directory: E-RNet (supergrasp*, gpd+s2) or PointNetGPD (*pointnetgpd)",
+    )
+    p.add_argument("--small-db", action="store_true", help="the small primitive database (Stage-1 methods; tests)")
+    p.add_argument("--backend", choices=("cpu", "mjx"), default="cpu", help="grasp trial simulator (default cpu)")
+    p.add_argument("--pictures", type=int, default=3, help="draw the first this many scenes (default 3)")
+    p.add_argument("--json", action="store_true", help='print {"GSR", "TSR", "GA", "scenes", ...} as JSON')
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=_cmd_declutter)
     return parser
 
 

@@ -3,7 +3,12 @@
 A candidate is removed when (i) the gripper (fingers or palm) collides with the target object's cloud,
 (ii) fewer than `min_points` target points lie between the fingers, (iii) the closing direction is more
 than `max_normal_angle_deg` from the surface normal at the fingertip contacts, or (iv) given a scene
-cloud, the gripper collides with it (other objects, the table).
+cloud of the obstacles (other objects, the table; not the target), the gripper collides with it at
+the grasp or along the straight approach over the last `approach_clearance` (the path the executor
+moves along), or an obstacle lies between the fingers at the grasp, or (v) given a
+support plane (the table), any gripper box comes within `support_clearance` of it, at the grasp or
+backed off by `approach_clearance`: the camera cannot see the table under an object, so (iv) alone
+lets grasps through that come from beneath the table.
 
 Contacts in (iii): for each finger, the target points in the closing region within `contact_slab` of
 the extreme along the closing axis on that finger's side; the finger's alignment is the best |cos|
@@ -23,9 +28,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sgjax.gripper import GripperSpec, local_regions, to_gripper_frame
+from sgjax.gripper import GripperSpec, gripper_boxes, local_regions, to_gripper_frame
 
-REASONS = ("collision_object", "too_few_points", "normal_angle", "collision_scene")
+REASONS = ("collision_object", "too_few_points", "normal_angle", "collision_scene", "below_support")
+NO_PLANE = (0.0, 0.0, 0.0, 1.0)  # a "plane" every point is above
 
 
 @dataclasses.dataclass(frozen=True)
@@ -38,6 +44,9 @@ class FilterConfig:
     contact_slab: float = 0.005  # metres
     collision_margin: float = 0.0  # grow the finger and palm boxes by this (metres)
     normal_neighbours: int = 16
+    approach_clearance: float = 0.05  # (iv), (v) also test the gripper up to this far back along -approach
+    approach_steps: int = 4  # (iv) gripper positions tested along that approach path (1: the grasp only)
+    support_clearance: float = 0.003  # (v) every gripper box corner at least this far above the plane
 
 
 def estimate_normals(points: jax.Array, mask: jax.Array, viewpoint: jax.Array, k: int = 16) -> jax.Array:
@@ -73,7 +82,8 @@ class FilterResult:
     too_few_points: jax.Array
     normal_angle: jax.Array
     collision_scene: jax.Array
-    points_between: jax.Array  # target points in the closing region [M]
+    below_support: jax.Array
+    points_between: jax.Array  # observed target points in the closing region [M] (scaled by point_scale)
 
 
 def _normal_test(local, in_closing, normals, closing_axis, cfg: FilterConfig) -> jax.Array:
@@ -105,27 +115,56 @@ def coarse_filter(
     scene_mask: jax.Array | None = None,
     spec: GripperSpec = GripperSpec(),
     cfg: FilterConfig = FilterConfig(),
+    support_plane: jax.Array | None = None,
+    point_scale: jax.Array | float = 1.0,
 ) -> FilterResult:
-    """Apply filters (i)-(iv) to candidates of one object.
+    """Apply filters (i)-(v) to candidates of one object.
 
     poses [M, 4, 4], widths [M], valid [M] (padding slots are never kept); object_points [N, 3],
-    object_mask [N], normals [N, 3] (`estimate_normals`); scene_points [S, 3], scene_mask [S] or None.
+    object_mask [N], normals [N, 3] (`estimate_normals`); scene_points [S, 3], scene_mask [S] or None;
+    support_plane [4] (n, d) with free space n . x + d > 0 and |n| = 1, or None (NO_PLANE);
+    point_scale: observed points per given object point (> 1 when the cloud was subsampled), so that
+    (ii) counts the observed cloud's points between the fingers as the paper does.
     """
     local = to_gripper_frame(object_points, poses)  # [M, N, 3]
     in_closing, in_gripper = local_regions(local, widths, spec, cfg.collision_margin)
     in_closing &= object_mask
     collision_object = jnp.any(in_gripper & object_mask, -1)
-    points_between = jnp.sum(in_closing, -1)
+    points_between = jnp.round(jnp.sum(in_closing, -1) * point_scale).astype(jnp.int32)
     too_few = points_between < cfg.min_points
     normal_bad = ~_normal_test(local, in_closing, normals, poses[:, :3, 0], cfg)
     if scene_points is None:
         collision_scene = jnp.zeros_like(collision_object)
     else:
         scene_local = to_gripper_frame(scene_points, poses)
-        _, scene_in_gripper = local_regions(scene_local, widths, spec, cfg.collision_margin)
-        collision_scene = jnp.any(scene_in_gripper & scene_mask, -1)
-    keep = valid & ~collision_object & ~too_few & ~normal_bad & ~collision_scene
-    return FilterResult(keep, collision_object & valid, too_few & valid, normal_bad & valid, collision_scene & valid, points_between)
+        collision_scene = jnp.zeros_like(collision_object)
+        # The executed motion comes straight in along the approach axis: test the gripper along that
+        # path too (backing off by d shows every point d further along +z in the gripper frame).
+        for step, d in enumerate(np.linspace(0.0, cfg.approach_clearance, max(cfg.approach_steps, 1))):
+            shifted = scene_local.at[..., 2].add(d)
+            scene_in_closing, scene_in_gripper = local_regions(shifted, widths, spec, cfg.collision_margin)
+            # At the grasp, an obstacle between the fingers would be squeezed too (or the fingertips
+            # reach the table): the scene passed here holds no point of the target itself.
+            hit = scene_in_gripper | scene_in_closing if step == 0 else scene_in_gripper
+            collision_scene |= jnp.any(hit & scene_mask, -1)
+    below = below_plane(poses, widths, support_plane, spec, cfg)
+    keep = valid & ~collision_object & ~too_few & ~normal_bad & ~collision_scene & ~below
+    failed = [collision_object, too_few, normal_bad, collision_scene, below]
+    return FilterResult(keep, *(f & valid for f in failed), points_between)
+
+
+def below_plane(poses, widths, plane, spec: GripperSpec, cfg: FilterConfig = FilterConfig()) -> jax.Array:
+    """Filter (v): poses [M, 4, 4], widths [M], plane [4] or None -> bool [M], some gripper box corner
+    lies less than support_clearance above the plane at the grasp or approach_clearance behind it."""
+    plane = jnp.asarray(NO_PLANE if plane is None else plane, poses.dtype)
+    normal, offset = plane[:3], plane[3]
+    backed = poses.at[:, :3, 3].add(-cfg.approach_clearance * poses[:, :3, 2])
+    lowest = []
+    for pose in (poses, backed):
+        boxes = gripper_boxes(pose, widths, spec)  # [M, 3]
+        reach = jnp.sum(jnp.abs(jnp.einsum("i,mbij->mbj", normal, boxes.rotation)) * boxes.half_extents, -1)
+        lowest.append(jnp.min(boxes.centre @ normal + offset - reach, -1))
+    return jnp.minimum(*lowest) < cfg.support_clearance
 
 
 def removal_counts(result: FilterResult, valid) -> dict[str, int]:

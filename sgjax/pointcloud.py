@@ -165,3 +165,67 @@ def pad_clouds(
         points[i, : len(c)] = c
         mask[i, : len(c)] = True
     return points, mask
+
+
+def voxel_downsample(
+    points: np.ndarray, voxel: float, labels: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """One point per occupied voxel of side `voxel` (the point nearest the voxel centre), in voxel order.
+
+    points [N, 3], labels [N] or None -> (points [V, 3], labels [V] or None). Keeping a real point (not a
+    centroid) leaves it on the surface and keeps its label; the result's density no longer depends on
+    the camera's distance, so crops seen in training and at run time look alike. Deterministic.
+    """
+    points = np.asarray(points)
+    if voxel <= 0:
+        raise ValueError(f"voxel must be positive, got {voxel}")
+    if len(points) == 0:
+        return points.reshape(0, 3), None if labels is None else np.asarray(labels)[:0]
+    scaled = points / voxel
+    cell = np.floor(scaled).astype(np.int64)
+    offset = np.linalg.norm(scaled - cell - 0.5, axis=1)
+    order = np.lexsort((offset, cell[:, 2], cell[:, 1], cell[:, 0]))  # by voxel, nearest-to-centre first
+    sorted_cells = cell[order]
+    first = np.ones(len(order), bool)
+    first[1:] = np.any(sorted_cells[1:] != sorted_cells[:-1], axis=1)
+    keep = order[first]
+    return points[keep], None if labels is None else np.asarray(labels)[keep]
+
+
+def scene_cloud(
+    points: np.ndarray,
+    max_points: int,
+    voxel: float = 0.003,
+    labels: np.ndarray | None = None,
+    bounds: tuple[np.ndarray, np.ndarray] | None = None,
+    seed: int = 0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """The fixed-size scene cloud Stage 2 sees, the same in labelling and planning.
+
+    points [N, 3] (non-finite rows dropped), optional labels [N] and axis-aligned bounds (lo [3],
+    hi [3]) -> (points [max_points, 3] float32, mask [max_points] bool, labels [max_points] int32 or
+    None; padding label -1). Voxel-downsampled, then at most max_points drawn uniformly (seeded).
+    """
+    points = np.asarray(points, np.float64)
+    if points.ndim != 2 or points.shape[-1] != 3:
+        raise CloudError(f"scene cloud must have shape [N, 3], got {points.shape}")
+    if labels is not None and np.shape(labels) != points.shape[:1]:
+        raise ValueError(f"labels must have shape {points.shape[:1]}, got {np.shape(labels)}")
+    keep = np.all(np.isfinite(points), axis=1)
+    if bounds is not None:
+        lo, hi = (np.asarray(b, np.float64) for b in bounds)
+        keep &= np.all((points >= lo) & (points <= hi), axis=1)
+    kept_labels = None if labels is None else np.asarray(labels)[keep]
+    points, kept_labels = voxel_downsample(points[keep], voxel, kept_labels)
+    if len(points) > max_points:
+        idx = np.sort(np.random.default_rng(seed).choice(len(points), size=max_points, replace=False))
+        points = points[idx]
+        kept_labels = None if kept_labels is None else kept_labels[idx]
+    out = np.zeros((max_points, 3), np.float32)
+    out[: len(points)] = points
+    mask = np.arange(max_points) < len(points)
+    if kept_labels is None:
+        return out, mask, None
+    out_labels = np.full(max_points, -1, np.int32)
+    out_labels[: len(points)] = kept_labels
+    return out, mask, out_labels

@@ -24,6 +24,7 @@ import numpy as np
 
 from sgjax import pointcloud
 from sgjax.coarse_filter import (
+    NO_PLANE,
     FilterConfig,
     coarse_filter,
     estimate_normals,
@@ -47,6 +48,7 @@ class Stage1Config:
     max_scene_points: int = 4096
     max_candidates: int = 1024  # transferred slots kept (in match order) for filtering
     scene_margin: float = 0.12  # scene points farther than this from the object's box cannot touch the gripper
+    target_exclusion: float = 0.002  # scene points this close to an object point are the object itself
 
 
 @dataclasses.dataclass
@@ -114,13 +116,18 @@ def _reason(counts: dict, cfg: Stage1Config) -> str:
     ]
     if counts.get("collision_scene"):
         parts.append(f"{counts['collision_scene']} collide with the scene")
+    if counts.get("below_support"):
+        parts.append(f"{counts['below_support']} reach below the support plane")
     return f"all {counts['transferred']} transferred candidates were removed: " + ", ".join(parts)
 
 
-@functools.partial(jax.jit, static_argnames=("cfg", "has_scene"))
-def _pipeline(obj, obj_mask, scene, scene_mask, viewpoint, db: MatchDB, cfg: Stage1Config, has_scene: bool):
-    """Fixed-shape Stage 1 over B objects. obj [B, N, 3], scene [B, S, 3], viewpoint [B, 3]."""
-    fit = jax.vmap(lambda p, m: _fit_one(p, m, cfg.ems))(obj, obj_mask)
+@functools.partial(jax.jit, static_argnames=("cfg", "has_scene", "has_view"))
+def _pipeline(obj, obj_mask, scene, scene_mask, viewpoint, plane, scale, db: MatchDB, cfg: Stage1Config, has_scene: bool,
+              has_view: bool = True):
+    """Fixed-shape Stage 1 over B objects. obj [B, N, 3], scene [B, S, 3], viewpoint [B, 3], plane [B, 4],
+    scale [B] (observed points per kept object point)."""
+    # A known viewpoint tells EMS which of the fitted surface the camera should have seen.
+    fit = jax.vmap(lambda p, m, v: _fit_one(p, m, cfg.ems, v if has_view else None))(obj, obj_mask, viewpoint)
     result = match(fit.scale, fit.epsilon, db, cfg.match)
     poses, widths, mask = transfer_grasps(fit.superquadric, result, db)  # [B, K2, G, ...]
     b, k2, g = mask.shape
@@ -133,10 +140,11 @@ def _pipeline(obj, obj_mask, scene, scene_mask, viewpoint, db: MatchDB, cfg: Sta
     rank = order // g
     normals = estimate_normals(obj, obj_mask, viewpoint, cfg.filter.normal_neighbours)
 
-    def one(p, w, v, o, om, nrm, s, sm):
-        return coarse_filter(p, w, v, o, om, nrm, s if has_scene else None, sm if has_scene else None, cfg.spec, cfg.filter)
+    def one(p, w, v, o, om, nrm, s, sm, pl, sc):
+        s, sm = (s, sm) if has_scene else (None, None)
+        return coarse_filter(p, w, v, o, om, nrm, s, sm, cfg.spec, cfg.filter, pl, sc)
 
-    filt = jax.vmap(one)(poses, widths, valid, obj, obj_mask, normals, scene, scene_mask)
+    filt = jax.vmap(one)(poses, widths, valid, obj, obj_mask, normals, scene, scene_mask, plane, scale)
     return {
         "fit": fit,
         "poses": poses,
@@ -160,21 +168,29 @@ class Stage1:
         self.match_db = MatchDB.from_db(self.db, config.match)
 
     def _crop_scene(self, scene: np.ndarray, obj: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
-        """Scene points near the object, subsampled and padded to max_scene_points."""
+        """The obstacles near the object: scene points within scene_margin of its box that are not the
+        object's own (farther than target_exclusion from every object point), subsampled and padded
+        to max_scene_points."""
+        from scipy.spatial import cKDTree
+
         cfg = self.config
         lo, hi = obj.min(0) - cfg.scene_margin, obj.max(0) + cfg.scene_margin
         near = scene[np.all((scene >= lo) & (scene <= hi), axis=1)]
+        if len(near):
+            own = cKDTree(obj).query(near, distance_upper_bound=cfg.target_exclusion)[0] <= cfg.target_exclusion
+            near = near[~own]
         near = pointcloud.downsample(near, cfg.max_scene_points, seed) if len(near) else near
         out = np.zeros((cfg.max_scene_points, 3), np.float32)
         out[: len(near)] = near
         return out, np.arange(cfg.max_scene_points) < len(near)
 
-    def batch(self, objects, scenes=None, viewpoints=None, seed: int = 0) -> list[Candidates]:
+    def batch(self, objects, scenes=None, viewpoints=None, seed: int = 0, support_plane=None) -> list[Candidates]:
         """Candidates for B objects in one compiled call.
 
         objects: sequence of clouds [N_i, 3]; scenes: None or a sequence (items None or [S_i, 3]);
-        viewpoints: None or [B, 3]. Bad clouds give an empty Candidates with the reason, not an error
-        (the single-object `__call__` raises instead).
+        viewpoints: None or [B, 3]; support_plane: None, [4] or [B, 4], the table as (n, d) with free
+        space n . x + d > 0 (filter (v)). Bad clouds give an empty Candidates with the reason, not an
+        error (the single-object `__call__` raises instead).
         """
         cfg = self.config
         if len(objects) == 0:
@@ -199,9 +215,14 @@ class Stage1:
             for i, s in enumerate(scenes):
                 if s is not None:
                     s = pointcloud.as_cloud(s, f"scene cloud {i}")
-                    scene[i], scene_mask[i] = self._crop_scene(s[np.all(np.isfinite(s), 1)], obj[i][obj_mask[i]], seed + i)
+                    scene[i], scene_mask[i] = self._crop_scene(s[np.all(np.isfinite(s), 1)], clouds[i], seed + i)
         view = np.zeros((b, 3), np.float32) if viewpoints is None else np.asarray(viewpoints, np.float32).reshape(b, 3)
-        out = _pipeline(obj, obj_mask, scene, scene_mask, view, self.match_db, cfg, has_scene)
+        plane = _planes(support_plane, b)
+        # Filter (ii) counts the observed points between the fingers, not the subsample's.
+        scale = np.array([len(c) for c in clouds], np.float32) / np.maximum(obj_mask.sum(1), 1)
+        out = _pipeline(
+            obj, obj_mask, scene, scene_mask, view, plane, scale, self.match_db, cfg, has_scene, viewpoints is not None
+        )
         out = jax.tree_util.tree_map(np.asarray, out)
         return [_empty({"transferred": 0, "kept": 0}, bad[i], None) if i in bad else self._unpack(out, i) for i in range(b)]
 
@@ -227,11 +248,25 @@ class Stage1:
             counts=counts,
         )
 
-    def __call__(self, object_points, scene_points=None, viewpoint=None, seed: int = 0) -> Candidates:
+    def __call__(self, object_points, scene_points=None, viewpoint=None, seed: int = 0, support_plane=None) -> Candidates:
         """Candidates for one object cloud [N, 3]; raises CloudError naming the problem for bad input."""
         cloud = pointcloud.as_cloud(object_points, "object cloud")  # raises for empty/NaN/too few/flat clouds
         views = None if viewpoint is None else np.asarray(viewpoint, np.float32)[None]
-        return self.batch([cloud], None if scene_points is None else [scene_points], views, seed)[0]
+        return self.batch([cloud], None if scene_points is None else [scene_points], views, seed, support_plane)[0]
+
+
+def _planes(support_plane, b: int) -> np.ndarray:
+    """None / [4] / [B, 4] -> [B, 4] float32 unit-normal planes (NO_PLANE where None)."""
+    if support_plane is None:
+        return np.tile(np.asarray(NO_PLANE, np.float32), (b, 1))
+    plane = np.asarray(support_plane, np.float64)
+    if plane.shape not in ((4,), (b, 4)):
+        raise ValueError(f"support_plane must have shape [4] or [{b}, 4], got {plane.shape}")
+    plane = np.broadcast_to(plane, (b, 4))
+    norm = np.linalg.norm(plane[:, :3], axis=1)
+    if not np.isfinite(plane).all() or (norm < 1e-9).any():
+        raise ValueError(f"support_plane must be finite with a non-zero normal, got {plane.tolist()}")
+    return (plane / norm[:, None]).astype(np.float32)
 
 
 @functools.lru_cache(maxsize=4)
@@ -247,6 +282,7 @@ def generate_candidates(
     config: Stage1Config = Stage1Config(),
     viewpoint=None,
     seed: int = 0,
+    support_plane=None,
 ) -> Candidates:
     """Stage-1 grasp candidates for one object cloud [N, 3] (metres), optionally avoiding a scene cloud.
 
@@ -254,4 +290,4 @@ def generate_candidates(
     objects, build one `Stage1(db, config)` and call `.batch(...)`.
     """
     stage = _default_stage1(config) if db is None else Stage1(db, config)
-    return stage(object_points, scene_points, viewpoint, seed)
+    return stage(object_points, scene_points, viewpoint, seed, support_plane)

@@ -55,6 +55,28 @@ def test_objects_leaving_the_workspace_are_removed(objects):
     np.testing.assert_allclose(scene.object_poses()[0, :3], scene_lib.park_position(0), atol=1e-3)
 
 
+def test_after_trial_keeps_what_a_failed_grasp_did(objects):
+    box = objects[0]
+    scene = scene_lib.arrange_scene([box, box], [[-0.1, 0.0, 0.026, *IDENTITY], [0.1, 0.0, 0.026, *IDENTITY]])
+    qpos = scene.qpos.copy()
+    adr = scene.model.jnt_qposadr[scene.model.body_jntadr[scene.body_ids]]
+    # As if a failed grasp had dropped box 0 from 5 cm, 4 cm further along x, turned about z.
+    qpos[adr[0] : adr[0] + 7] = [-0.06, 0.0, 0.08, np.cos(0.3), 0.0, 0.0, np.sin(0.3)]
+    after = scene_lib.after_trial(scene, qpos)
+    poses = after.object_poses()
+    assert after.present.all() and after.at_rest
+    np.testing.assert_allclose(poses[0, :2], [-0.06, 0.0], atol=5e-3)  # it fell straight down and stays
+    assert abs(poses[0, 2] - scene.object_poses()[0, 2]) < 2e-3  # resting on the table again
+    np.testing.assert_allclose(poses[1, :3], scene.object_poses()[1, :3], atol=1e-3)  # untouched
+    np.testing.assert_array_equal(scene_lib.after_trial(scene, qpos).state, after.state)  # deterministic
+    # A box pushed out of the workspace is removed; an invalid trial changes nothing.
+    qpos[adr[1] : adr[1] + 3] = [0.3, 0.0, 0.026]
+    assert scene_lib.after_trial(scene, qpos).present.tolist() == [True, False]
+    assert scene_lib.after_trial(scene, np.full_like(qpos, np.nan)) is scene
+    with pytest.raises(ValueError, match="qpos must have shape"):
+        scene_lib.after_trial(scene, qpos[:-1])
+
+
 def test_remove_object_is_deterministic_and_hides_it(scene):
     index = int(np.flatnonzero(scene.present)[0])
     removed = scene_lib.remove_object(scene, index)

@@ -4,6 +4,9 @@ orbax checkpoints every epoch with exact resume, progress bar, metrics.json / me
     from train.trainer import TrainConfig, train
     result = train("shards/", "runs/ernet", TrainConfig(epochs=100))
 
+`run_training` is that loop for any network on these shards (the PointNetGPD baseline,
+train/train_pointnetgpd.py, brings its own model and steps and reuses everything else).
+
 Determinism: the model init, the per-epoch shuffle (numpy, seeded by (seed, epoch)) and the per-step
 noise/shuffle keys (fold_in(seed, epoch, step)) depend only on the seed, so a run interrupted at any
 point and restarted with the same command continues from its last completed epoch and ends with the
@@ -45,7 +48,7 @@ from sgjax.ernet import (
     ernet_loss,
     prepare_inputs,
 )
-from sgjax.files import atomic_write
+from sgjax.files import atomic_write, atomic_write_text
 from sgjax.gripper import GripperSpec
 from train import dataset
 
@@ -168,7 +171,8 @@ def _make_steps(graphdef: nnx.GraphDef, config: TrainConfig):
 
 
 def summarise(stats: Mapping[str, Any]) -> dict[str, Any]:
-    """Summed batch stats -> metrics (None where undefined, e.g. precision with no positive call)."""
+    """Summed batch stats -> metrics (None where undefined, e.g. precision with no positive call, or
+    the refinement metrics of a network without a refinement head: no "refine_*" stats)."""
     s = {k: np.asarray(v, np.float64) for k, v in stats.items()}
     n = float(s["n"])
 
@@ -180,11 +184,11 @@ def summarise(stats: Mapping[str, Any]) -> dict[str, Any]:
         "skipped_no_anchor": int(s["skipped"]),
         "loss": ratio(s["loss"], n),
         "eval_loss": ratio(s["eval_loss"], n),
-        "refine_loss": ratio(s["refine_loss"], n),
+        "refine_loss": ratio(s["refine_loss"], n) if "refine_loss" in s else None,
         "accuracy": ratio(s["correct"], n),
         "precision": ratio(s["tp"], s["tp"] + s["fp"]),
         "recall": ratio(s["tp"], s["tp"] + s["fn"]),
-        "refine_accuracy": [ratio(c, n) for c in s["refine_correct"]],
+        "refine_accuracy": [ratio(c, n) for c in s["refine_correct"]] if "refine_correct" in s else None,
     }
 
 
@@ -298,14 +302,9 @@ def plot_curves(history: list[dict[str, Any]], path: str) -> None:
 
 def _write_outputs(run_dir: str, history: list[dict[str, Any]], config: TrainConfig) -> None:
     record = {"train_config": json.loads(json.dumps(dataclasses.asdict(config))), "history": history}
-    atomic_write(os.path.join(run_dir, "metrics.json"), lambda tmp: _write_text(tmp, json.dumps(record, indent=1)))
-    atomic_write(os.path.join(run_dir, "metrics.csv"), lambda tmp: _write_text(tmp, _csv_text(history)))
+    atomic_write_text(os.path.join(run_dir, "metrics.json"), json.dumps(record, indent=1))
+    atomic_write_text(os.path.join(run_dir, "metrics.csv"), _csv_text(history))
     plot_curves(history, os.path.join(run_dir, "curves.png"))
-
-
-def _write_text(path: str, text: str) -> None:
-    with open(path, "w") as f:
-        f.write(text)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -314,7 +313,7 @@ def _write_text(path: str, text: str) -> None:
 
 @dataclasses.dataclass
 class TrainResult:
-    model: ERNet
+    model: nnx.Module  # an ERNet (`train`), or the network given to `run_training`
     history: list[dict[str, Any]]
     run_dir: str
 
@@ -354,19 +353,41 @@ def train(
     `epochs` may grow). `on_step(epoch, step)` is called after every training step (e.g. logging).
     Writes run_dir/{checkpoints/, metrics.json, metrics.csv, curves.png}.
     """
+    if config.model.n_refinements != config.spec.num_refinements:
+        raise ValueError("model n_refinements must equal the gripper spec's refinement count")
+    model = ERNet(config.model, rngs=nnx.Rngs(config.seed))
+    return run_training(model, make_steps, data, run_dir, config, progress=progress, on_step=on_step)
+
+
+def run_training(
+    model: nnx.Module,
+    steps: Callable[[nnx.GraphDef, TrainConfig], tuple],
+    data: str | os.PathLike | Mapping[str, np.ndarray],
+    run_dir: str | os.PathLike,
+    config: TrainConfig,
+    *,
+    meta: Mapping[str, Any] | None = None,
+    progress: bool = True,
+    on_step: Callable[[int, int], None] | None = None,
+) -> TrainResult:
+    """The training loop of `train`, for any network trained on these shards (E-RNet, the baselines).
+
+    model: the freshly initialised network (seeded by config.seed; `config.model` is its config, with
+    `to_dict()`); steps(graphdef, config) -> (tx, train_step, eval_step) as `make_steps`, whose stats
+    follow `_batch_stats` (the "refine_*" entries may be left out); meta: extra JSON entries stored
+    in every checkpoint's meta (e.g. {"network": "pointnetgpd"}). Data split, batching, prefetch,
+    checkpoints, exact resume and outputs are those of `train`.
+    """
     import orbax.checkpoint as ocp
     from tqdm.auto import tqdm
 
     run_dir = os.fspath(run_dir)
     os.makedirs(run_dir, exist_ok=True)
-    if config.model.n_refinements != config.spec.num_refinements:
-        raise ValueError("model n_refinements must equal the gripper spec's refinement count")
     train_set, held_set = _load_data(data, config)
     n_train, n_held = len(train_set["label"]), len(held_set["label"])
 
-    model = ERNet(config.model, rngs=nnx.Rngs(config.seed))
     graphdef, params = nnx.split(model)
-    tx, train_step, eval_step = make_steps(graphdef, config)
+    tx, train_step, eval_step = steps(graphdef, config)
     opt_state = tx.init(params)
 
     manager = _checkpoint_manager(run_dir)
@@ -374,10 +395,10 @@ def train(
     start = manager.latest_step() or 0
     fingerprint = {"config": config.resume_key(), "n_train": n_train, "n_held_out": n_held}
     if start:
-        meta = manager.restore(start, args=ocp.args.Composite(**{META_ITEM: ocp.args.JsonRestore()}))[META_ITEM]
-        if meta["fingerprint"] != fingerprint:
+        saved = manager.restore(start, args=ocp.args.Composite(**{META_ITEM: ocp.args.JsonRestore()}))[META_ITEM]
+        if saved["fingerprint"] != fingerprint:
             raise ValueError(
-                f"{run_dir} holds a run with other settings or data ({meta['fingerprint']}); "
+                f"{run_dir} holds a run with other settings or data ({saved['fingerprint']}); "
                 "use a new --out directory or the same settings to resume"
             )
         abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, {PARAMS_ITEM: params, OPT_STATE_ITEM: opt_state})
@@ -386,7 +407,7 @@ def train(
             args=ocp.args.Composite(**{k: ocp.args.StandardRestore(v) for k, v in abstract.items()}),
         )
         params, opt_state = restored[PARAMS_ITEM], restored[OPT_STATE_ITEM]
-        history = meta["history"]
+        history = saved["history"]
         if progress:
             print(f"resuming {run_dir} after epoch {start}")
     # Restored arrays are committed to a device; commit fresh ones too, or the jitted step would
@@ -419,7 +440,8 @@ def train(
             if n_held:
                 record["held_out"] = evaluate_params(eval_step, params, held_set, config.batch_size, eval_key)
             history.append(record)
-            meta = {
+            record_meta = {
+                **(meta or {}),
                 "epochs_done": epoch + 1,
                 "history": history,
                 "model_config": config.model.to_dict(),
@@ -431,7 +453,7 @@ def train(
                     **{
                         PARAMS_ITEM: ocp.args.StandardSave(params),
                         OPT_STATE_ITEM: ocp.args.StandardSave(opt_state),
-                        META_ITEM: ocp.args.JsonSave(meta),
+                        META_ITEM: ocp.args.JsonSave(record_meta),
                     }
                 ),
             )
@@ -461,7 +483,9 @@ def _epoch_line(record: Mapping[str, Any]) -> str:
         def f(v):
             return "n/a" if v is None else f"{v:.3f}"
 
-        ra = "/".join(f(v) for v in m["refine_accuracy"])
-        return f"loss {f(m['loss'])} acc {f(m['accuracy'])} P {f(m['precision'])} R {f(m['recall'])} refine {ra}"
+        line = f"loss {f(m['loss'])} acc {f(m['accuracy'])} P {f(m['precision'])} R {f(m['recall'])}"
+        if m.get("refine_accuracy") is not None:
+            line += " refine " + "/".join(f(v) for v in m["refine_accuracy"])
+        return line
 
     return f"epoch {record['epoch']}: train {fmt(record['train'])} | held-out {fmt(record['held_out'])}"

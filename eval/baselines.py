@@ -1,0 +1,366 @@
+"""The paper's PointNetGPD baseline and its two ablations (Table I) as benchmark methods.
+
+  pointnetgpd      GPD-style geometric candidates (eval/gpd.py: antipodal sampling, the deepest
+                   collision-free placement, centring and width, re-checked; its antipodal ranking is
+                   not used) scored by the PointNetGPD evaluator (sgjax/pointnetgpd.py); the best-scored
+                   candidate is executed (PointNetGPD executes its best grasp; no threshold).
+  s1+pointnetgpd   "Ours (S1) + PointNetGPD": SuperGrasp's Stage 1 (sgjax/stage1.py, every visible
+                   object, the rest of the scene as obstacles, the observed table as support plane)
+                   scored by PointNetGPD; the best is executed.
+  gpd+s2           "PointNetGPD + Ours (S2)": the GPD-style candidates scored by E-RNet and chosen by
+                   SuperGrasp's decision policy (`sgjax.planner.decide`: the best evaluation > 0.7,
+                   else the best refinement > 0.7, refined by that variant, else no grasp).
+
+Options (`eval.methods.make_method`): `model` -- the network: a run directory, a model instance, or
+None for the shipped default (`sgjax/models/pointnetgpd_default` for the PointNetGPD methods,
+`sgjax/models/ernet_default` for gpd+s2; a missing default raises FileNotFoundError naming the path
+and the training command); `small_db` / `db` -- Stage 1's primitive database (s1+pointnetgpd only);
+`config` -- a `BaselineConfig`.
+
+Both networks score the scene as the labelling pipeline cropped it: the whole observation (objects
+and table) on a voxel grid of `scene_voxel` (3 mm), at most `max_scene_points` points
+(`sgjax.pointcloud.scene_cloud`, seeded). Fixed shapes, so no call after the first recompiles: the
+candidates are padded (identity pose, NaN width: invalid for both networks) to `max_candidates`
+slots; more candidates than slots -> a seeded uniform subset of the GPD-style ones, or, for Stage 1,
+every object's best-matched ones first (round-robin over objects in match order, as the planner);
+Stage 1 runs objects in batches of `stage1_batch_sizes`.
+
+Timing: stage1_s = candidate generation, stage2_s = scene cloud + network + decision.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import os
+import time
+
+import jax
+import numpy as np
+from flax import nnx
+
+from eval import gpd
+from eval.methods import Decision
+from eval.supergrasp import table_plane
+from sgjax import gripper, pointcloud
+from sgjax.gripper import GripperSpec
+from sgjax.stage1 import Stage1Config
+
+
+@dataclasses.dataclass(frozen=True)
+class BaselineConfig:
+    """Settings of the baseline methods (hashable).
+
+    gpd: the GPD-style candidate generator (its spec must equal stage1's).
+    stage1: SuperGrasp's Stage 1 (s1+pointnetgpd); its spec is the gripper of every method here.
+    max_candidates: candidate slots scored per plan (padded and masked).
+    min_object_points, stage1_batch_sizes: as `sgjax.planner.PlannerConfig` (objects with fewer
+        points are skipped; objects run through Stage 1 in chunks of these sizes).
+    max_scene_points, scene_voxel: the scene cloud the networks crop from (as in labelling).
+    eval_threshold, refine_threshold, use_refinement: SuperGrasp's decision policy (gpd+s2).
+    """
+
+    gpd: gpd.GPDConfig = dataclasses.field(default_factory=gpd.GPDConfig)
+    stage1: Stage1Config = dataclasses.field(default_factory=Stage1Config)
+    max_candidates: int = 512
+    min_object_points: int = 50
+    stage1_batch_sizes: tuple[int, ...] = (4,)
+    max_scene_points: int = 32768
+    scene_voxel: float = 0.003
+    eval_threshold: float = 0.7
+    refine_threshold: float = 0.7
+    use_refinement: bool = True
+
+    def __post_init__(self):
+        object.__setattr__(self, "stage1_batch_sizes", tuple(sorted({int(b) for b in self.stage1_batch_sizes})))
+        if self.gpd.spec != self.stage1.spec:
+            raise ValueError("BaselineConfig: the GPD generator and Stage 1 must use the same GripperSpec")
+        if self.max_candidates < 1 or self.max_scene_points < 1 or not self.stage1_batch_sizes or self.stage1_batch_sizes[0] < 1:
+            raise ValueError("max_candidates, max_scene_points and stage1_batch_sizes must be >= 1")
+        if self.min_object_points < pointcloud.MIN_POINTS:
+            raise ValueError(f"min_object_points must be >= {pointcloud.MIN_POINTS}")
+        for name in ("eval_threshold", "refine_threshold"):
+            if not 0.0 <= getattr(self, name) < 1.0:
+                raise ValueError(f"{name} must be in [0, 1), got {getattr(self, name)}")
+
+    @property
+    def spec(self) -> GripperSpec:
+        return self.stage1.spec
+
+
+# ---------------------------------------------------------------------------------------------
+# Candidates.
+
+
+@dataclasses.dataclass
+class CandidateSet:
+    """Candidates padded to `slots`: poses [S, 4, 4] f32 (identity padding), widths [S] f32 (NaN
+    padding), n real ones first; found = candidates before the budget; target [S] object label (-1
+    unknown); reason when n == 0; info JSON-able counts."""
+
+    poses: np.ndarray
+    widths: np.ndarray
+    n: int
+    found: int
+    target: np.ndarray
+    reason: str = ""
+    info: dict = dataclasses.field(default_factory=dict)
+
+
+def _padded(poses, widths, target, slots: int, found: int, reason: str = "", info=None) -> CandidateSet:
+    n = len(widths)
+    out_p = np.tile(np.eye(4, dtype=np.float32), (slots, 1, 1))
+    out_w = np.full(slots, np.nan, np.float32)
+    out_t = np.full(slots, -1, np.int64)
+    out_p[:n], out_w[:n], out_t[:n] = poses, widths, target
+    return CandidateSet(out_p, out_w, n, found, out_t, reason, dict(info or {}))
+
+
+def _empty(slots: int, reason: str, info=None) -> CandidateSet:
+    return _padded(np.zeros((0, 4, 4)), np.zeros(0), np.zeros(0, np.int64), slots, 0, reason, info)
+
+
+def gpd_candidates(points, labels, viewpoint, seed: int, config: BaselineConfig) -> CandidateSet:
+    """The GPD-style generator (eval/gpd.py stages 1 and 2) -> its kept candidates, padded.
+
+    A seeded uniform subset of them when there are more than `max_candidates`."""
+    cfg, slots = config.gpd, config.max_candidates
+    cloud, mask, table_z, n = gpd.prepare_cloud(points, labels, cfg, seed)
+    if n < cfg.min_points:
+        return _empty(slots, f"only {n} object points seen", {"object_points": n})
+    view = np.asarray(viewpoint, np.float32).reshape(3)
+    sampled = gpd.candidates(cloud, mask, view, np.float32(table_z), jax.random.key(seed), cfg)
+    m = cfg.num_samples * cfg.num_angles
+    out = gpd.evaluate(sampled["poses"].reshape(m, 4, 4), sampled["valid"].reshape(m), cloud, mask,
+                       sampled["normals"], np.float32(table_z), cfg)
+    out = jax.tree_util.tree_map(np.asarray, out)
+    kept = np.flatnonzero(out["valid"])
+    info = {"object_points": n, "sampled": m, "collision_free": int(np.asarray(sampled["valid"]).sum()),
+            "kept": len(kept)}
+    if len(kept) == 0:
+        return _empty(slots, f"no GPD candidate kept among {m} sampled ({info['collision_free']} collision-free)", info)
+    if len(kept) > slots:
+        kept = np.sort(np.random.default_rng(seed).choice(kept, slots, replace=False))
+    return _padded(out["poses"][kept], out["widths"][kept], np.full(len(kept), -1), slots, int(info["kept"]), info=info)
+
+
+def round_robin(counts, budget: int) -> tuple[np.ndarray, np.ndarray]:
+    """counts [B] candidates per object (in match order) -> (object [M], row [M]), M = min(total,
+    budget): all when they fit, else rank 0 of every object, then rank 1, ... (in (object, row) order)."""
+    obj = np.concatenate([np.full(n, i, np.int64) for i, n in enumerate(counts)] + [np.zeros(0, np.int64)])
+    row = np.concatenate([np.arange(n, dtype=np.int64) for n in counts] + [np.zeros(0, np.int64)])
+    if len(obj) > budget:
+        keep = np.sort(np.lexsort((obj, row))[:budget])
+        obj, row = obj[keep], row[keep]
+    return obj, row
+
+
+def _usable(points: np.ndarray) -> bool:
+    return len(points) > 0 and int(pointcloud.cloud_status(points, np.ones(len(points), bool))) == pointcloud.OK
+
+
+class Stage1Candidates:
+    """SuperGrasp's Stage 1 over every visible object of an observation, padded to max_candidates."""
+
+    def __init__(self, config: BaselineConfig, db=None, small_db: bool = False):
+        from sgjax.stage1 import Stage1
+
+        if db is None and small_db:
+            from sgjax.primitive_db import DBConfig, load_database
+
+            db = load_database(DBConfig.small(), progress=False)
+        self.config = config
+        self.stage1 = Stage1(db, config.stage1)
+
+    def __call__(self, points, labels, viewpoint, seed: int) -> CandidateSet:
+        cfg, slots = self.config, self.config.max_candidates
+        points = np.asarray(points, np.float64)
+        labels = np.asarray(labels).astype(np.int64)
+        finite = np.all(np.isfinite(points), axis=1)
+        points, labels = points[finite], labels[finite]
+        ids, counts = np.unique(labels[labels >= 0], return_counts=True)
+        objects = [int(i) for i, c in zip(ids, counts) if c >= cfg.min_object_points]
+        info = {"objects": len(ids), "planned_objects": len(objects)}
+        if not objects:
+            return _empty(slots, f"no object with at least {cfg.min_object_points} visible points", info)
+        clouds = [points[labels == k] for k in objects]
+        scenes = []
+        for k in objects:
+            others = points[labels != k]
+            scenes.append(others if _usable(others) else (points if _usable(points) else None))
+        plane = table_plane(points, labels)
+        view = np.asarray(viewpoint, np.float64).reshape(3)
+        found = []
+        begin = 0
+        while begin < len(clouds):  # chunks of the configured sizes: a bounded number of compiles
+            left = len(clouds) - begin
+            size = max((b for b in cfg.stage1_batch_sizes if b <= left), default=cfg.stage1_batch_sizes[0])
+            part = clouds[begin : begin + size]
+            pad = size - len(part)
+            result = self.stage1.batch(
+                part + [np.zeros((1, 3))] * pad, scenes[begin : begin + size] + [None] * pad,
+                np.tile(view, (size, 1)), seed + begin, support_plane=plane,
+            )
+            found.extend(result[: len(part)])
+            begin += len(part)
+        sizes = [len(c) for c in found]
+        info["stage1_candidates"] = int(sum(sizes))
+        if not sum(sizes):
+            detail = "; ".join(f"object {k}: {c.reason}" for k, c in zip(objects, found))
+            return _empty(slots, f"no Stage-1 candidates: {detail}", info)
+        obj, row = round_robin(sizes, slots)
+        poses = np.stack([found[o].poses[r] for o, r in zip(obj, row)])
+        widths = np.asarray([found[o].widths[r] for o, r in zip(obj, row)])
+        return _padded(poses, widths, np.asarray(objects)[obj], slots, int(sum(sizes)), info=info)
+
+
+# ---------------------------------------------------------------------------------------------
+# Networks.
+
+
+def load_pointnetgpd(model):
+    """A PointNetGPD from None (the shipped default), a model, or a run directory."""
+    from sgjax import pointnetgpd
+
+    if model is None:
+        return pointnetgpd.load_default_model()
+    if isinstance(model, pointnetgpd.PointNetGPD):
+        return model
+    if isinstance(model, (str, os.PathLike)):
+        return pointnetgpd.load_model(model)[0]
+    raise TypeError(f"model must be a PointNetGPD, a run directory or None, got {type(model).__name__}")
+
+
+def load_ernet(model):
+    """An ERNet from None (the planner's shipped default), a model, or a `sgjax train` run directory."""
+    from sgjax import ernet
+
+    if model is None:
+        from sgjax.planner import load_default_model
+
+        return load_default_model()
+    if isinstance(model, ernet.ERNet):
+        return model
+    if isinstance(model, (str, os.PathLike)):
+        return ernet.load_model(model)[0]
+    raise TypeError(f"model must be an ERNet, a `sgjax train` run directory or None, got {type(model).__name__}")
+
+
+@functools.cache
+def _decide():
+    from sgjax.planner import decide
+
+    return jax.jit(decide)
+
+
+def _orthonormal(pose) -> np.ndarray:
+    pose = np.asarray(pose, np.float64).copy()
+    u, _, vt = np.linalg.svd(pose[:3, :3])
+    pose[:3, :3] = u @ vt
+    pose[3] = [0.0, 0.0, 0.0, 1.0]
+    return pose
+
+
+# ---------------------------------------------------------------------------------------------
+# The methods.
+
+
+class _CandidateMethod:
+    """Candidates from a generator, then a network and a decision on the scene cloud."""
+
+    name = ""
+    generator_name = ""
+
+    def __init__(self, network, config: BaselineConfig | None, generator):
+        self.config = config or BaselineConfig()
+        self.generator = generator
+        self.graphdef, state = nnx.split(network)
+        # Commit the weights as the planner does: every instance with this network shares one compile.
+        self.state = jax.device_put(state, jax.devices()[0])
+
+    def plan(self, points: np.ndarray, labels: np.ndarray, viewpoint, seed: int = 0) -> Decision:
+        start = time.perf_counter()
+        points, labels = np.asarray(points), np.asarray(labels)
+        cands = self.generator(points, labels, viewpoint, seed)
+        mid = time.perf_counter()
+        info = {"generator": self.generator_name, "candidates": cands.found, "scored": cands.n, **cands.info}
+        if cands.n == 0:
+            return Decision(None, 0.0, 0.0, cands.reason, {"stage1_s": mid - start, "stage2_s": 0.0, "total_s": mid - start}, info)
+        cfg = self.config
+        scene, mask, _ = pointcloud.scene_cloud(points, cfg.max_scene_points, cfg.scene_voxel, None, None, seed)
+        pose, width, score, reason, extra = self._decide(cands, scene, mask, seed)
+        end = time.perf_counter()
+        timing = {"stage1_s": mid - start, "stage2_s": end - mid, "total_s": end - start}
+        info.update(extra)
+        if pose is None:
+            return Decision(None, 0.0, float(score), reason, timing, info)
+        return Decision(_orthonormal(pose), float(width), float(score), "", timing, info)
+
+
+class PointNetGPDMethod(_CandidateMethod):
+    """`pointnetgpd` (generator "gpd") and `s1+pointnetgpd` (generator "stage1"): the best PointNetGPD score."""
+
+    def __init__(self, generator: str = "gpd", model=None, small_db: bool = False, db=None, config=None):
+        config = config or BaselineConfig()
+        if generator not in ("gpd", "stage1"):
+            raise ValueError(f"generator must be 'gpd' or 'stage1', got {generator!r}")
+        network = load_pointnetgpd(model)  # first: a missing checkpoint fails before the database loads
+        if generator == "gpd":
+            self.name, make = "pointnetgpd", functools.partial(gpd_candidates, config=config)
+        else:
+            self.name, make = "s1+pointnetgpd", Stage1Candidates(config, db, small_db)
+        self.generator_name = generator
+        super().__init__(network, config, make)
+
+    def _decide(self, cands: CandidateSet, scene, mask, seed: int):
+        from sgjax import pointnetgpd
+
+        out = pointnetgpd.score(self.graphdef, self.state, scene, cands.poses, cands.widths, mask,
+                                spec=self.config.spec, key=jax.random.key(seed))
+        prob, valid = np.asarray(out.prob), np.asarray(out.valid) & (np.arange(len(cands.widths)) < cands.n)
+        extra = {"valid": int(valid.sum())}
+        if not valid.any():
+            return None, 0.0, 0.0, f"none of the {cands.n} candidates has a scene point in its closing region", extra
+        best = int(np.argmax(np.where(valid, prob, -1.0)))
+        extra.update(kind="best", index=best, target=int(cands.target[best]))
+        return cands.poses[best], cands.widths[best], prob[best], "", extra
+
+
+class GPDStage2Method(_CandidateMethod):
+    """`gpd+s2`: GPD-style candidates, E-RNet scores, SuperGrasp's decision policy."""
+
+    name = "gpd+s2"
+    generator_name = "gpd"
+
+    def __init__(self, model=None, config=None):
+        config = config or BaselineConfig()
+        super().__init__(load_ernet(model), config, functools.partial(gpd_candidates, config=config))
+
+    def _decide(self, cands: CandidateSet, scene, mask, seed: int):
+        from sgjax import ernet
+
+        cfg = self.config
+        out = ernet.score(self.graphdef, self.state, scene, cands.poses, cands.widths, mask, spec=cfg.spec,
+                          key=jax.random.key(seed))
+        valid = np.asarray(out.valid) & (np.arange(len(cands.widths)) < cands.n)
+        index, kind, variant, score = _decide()(out.eval_prob, out.refine_prob, valid, np.float32(cfg.eval_threshold),
+                                                np.float32(cfg.refine_threshold), np.bool_(cfg.use_refinement))
+        index, kind, variant, score = int(index), int(kind), int(variant), float(score)
+        extra = {"valid": int(valid.sum())}
+        if kind == 0:
+            if not valid.any():
+                reason = f"none of the {cands.n} candidates has a scene point in its closing region (E-RNet valid = False)"
+            else:
+                eval_prob, refine_prob = np.asarray(out.eval_prob)[valid], np.asarray(out.refine_prob)[valid]
+                reason = f"best eval {eval_prob.max():.2f} <= {cfg.eval_threshold:g}"
+                reason += (f" and best refine {refine_prob.max():.2f} <= {cfg.refine_threshold:g}" if cfg.use_refinement
+                           else " (refinement disabled)")
+            return None, 0.0, score, reason, extra
+        pose = cands.poses[index]
+        if kind == 2:
+            pose = np.asarray(gripper.refined_pose(pose, variant, cfg.spec))
+            extra.update(kind="refined", refine_variant=variant)
+        else:
+            extra.update(kind="evaluated")
+        extra.update(index=index)
+        return pose, cands.widths[index], score, "", extra

@@ -1,0 +1,141 @@
+"""Contact-GraspNet runner: executed by the Contact-GraspNet environment's Python, NOT by sgjax's.
+
+It imports only the standard library, numpy and `cgn_pytorch` (plus torch when present), so it runs
+in the separate environment that `eval/contact_graspnet.py` describes (numpy<2, torch CPU,
+torch-geometric 2.4.0, torch-cluster 1.6.3, cgn-pytorch 0.4.3). sgjax talks to it out of process.
+
+Request (an .npz written by sgjax):
+    points     float32 [N, 3]  world frame, z up, metres, MEAN SUBTRACTED (as CGN's own scenes are)
+    obj_mask   float32 [N]     1 for object points, 0 for the table (CGN keeps grasps on masked points)
+    seed       int             libc srand(seed) before inference: torch-cluster's fps seeds from rand(),
+                               so torch.manual_seed alone is not repeatable; numpy and torch are seeded too
+    threshold  float           CGN's confidence threshold (0.5)
+Reply (an .npz written here):
+    grasps      float64 [K, 4, 4]  CGN's Panda grasp poses in the request's (mean-subtracted) frame,
+                                   sorted by confidence, best first (CGN returns them unsorted)
+    confidence  float64 [K]
+    inference_s float              wall seconds of `inference` alone
+
+Usage:
+    python eval/cgn_runner.py REQUEST.npz REPLY.npz   # one request
+    python eval/cgn_runner.py --serve                 # the model stays loaded; one JSON line per
+        request on stdin, {"input": REQUEST.npz, "output": REPLY.npz}; one JSON line per reply on
+        stdout, {"ok": true, "grasps": K, "inference_s": t} or {"ok": false, "error": "..."}; the
+        first line written is {"ready": true, "load_s": t} (or {"ok": false, ...} and exit 1).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import ctypes.util
+import json
+import sys
+import time
+import traceback
+
+import numpy as np
+
+
+def seed_everything(seed: int) -> None:
+    """libc srand (torch-cluster's fps), numpy and torch (when installed)."""
+    seed = int(seed) & 0xFFFFFFFF
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        libc.srand(ctypes.c_uint(seed))
+    except OSError:  # no libc to seed (not Linux/macOS): runs stay valid, only not repeatable
+        pass
+    np.random.seed(seed)
+    try:
+        import torch
+    except ImportError:
+        return
+    torch.manual_seed(seed)
+
+
+def _no_grad():
+    try:
+        import torch
+    except ImportError:
+        return contextlib.nullcontext()
+    return torch.no_grad()
+
+
+def load_model():
+    """CGN's pretrained model on the CPU (the checkpoint ships in the wheel)."""
+    from cgn_pytorch import from_pretrained
+
+    model, _, _ = from_pretrained(device="cpu")
+    if hasattr(model, "eval"):
+        model.eval()
+    return model
+
+
+def run(model, request_path: str, reply_path: str) -> dict:
+    """One request -> reply file; returns {"grasps": K, "inference_s": t}."""
+    from cgn_pytorch import inference
+
+    with np.load(request_path, allow_pickle=False) as data:
+        points = np.asarray(data["points"], np.float32).reshape(-1, 3)
+        obj_mask = np.asarray(data["obj_mask"], np.float32).reshape(-1)  # 1-D: an (N, 1) mask crashes CGN
+        seed = int(data["seed"])
+        threshold = float(data["threshold"])
+    seed_everything(seed)
+    start = time.perf_counter()
+    with _no_grad():
+        grasps, confidence, _ = inference(model, points, threshold=threshold, obj_mask=obj_mask)
+    elapsed = time.perf_counter() - start
+    if grasps is None:
+        grasps, confidence = np.zeros((0, 4, 4)), np.zeros(0)
+    grasps = np.asarray(_numpy(grasps), np.float64).reshape(-1, 4, 4)
+    confidence = np.asarray(_numpy(confidence), np.float64).reshape(-1)
+    order = np.argsort(-confidence, kind="stable")
+    np.savez(reply_path, grasps=grasps[order], confidence=confidence[order], inference_s=np.float64(elapsed))
+    return {"grasps": len(order), "inference_s": elapsed}
+
+
+def _numpy(value):
+    """torch tensors (CPU or not) and arrays -> numpy."""
+    if hasattr(value, "detach"):
+        value = value.detach().cpu().numpy()
+    return value
+
+
+def _reply(record: dict) -> None:
+    sys.stdout.write(json.dumps(record) + "\n")
+    sys.stdout.flush()
+
+
+def serve() -> int:
+    start = time.perf_counter()
+    try:
+        model = load_model()
+    except Exception as exc:  # noqa: BLE001 - reported to the caller, which raises
+        _reply({"ok": False, "error": f"loading Contact-GraspNet failed: {type(exc).__name__}: {exc}"})
+        traceback.print_exc()
+        return 1
+    _reply({"ready": True, "load_s": time.perf_counter() - start})
+    for line in sys.stdin:
+        if not line.strip():
+            continue
+        try:
+            request = json.loads(line)
+            _reply({"ok": True, **run(model, request["input"], request["output"])})
+        except Exception as exc:  # noqa: BLE001 - one bad request must not end the server
+            traceback.print_exc()
+            _reply({"ok": False, "error": f"{type(exc).__name__}: {exc}"})
+    return 0
+
+
+def main(argv: list[str]) -> int:
+    if argv == ["--serve"]:
+        return serve()
+    if len(argv) != 2:
+        print(__doc__, file=sys.stderr)
+        return 2
+    print(json.dumps(run(load_model(), argv[0], argv[1])))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

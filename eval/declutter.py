@@ -1,0 +1,260 @@
+"""The decluttering episode: observe -> plan -> execute in simulation, until the table is clear.
+
+One scene (paper Sec. V-B): `make_scene` drops n objects into the 50 x 50 cm workspace; then, at most
+objects + 5 times: the fixed depth camera observes the scene, the method plans on the observation, the
+grasp is simulated (`envs.trial.run_trials`, approach / close / lift / reorient / disturbance), and a
+successful grasp removes its object (`envs.scene.remove_object`, which re-settles the rest). A scene
+ends when the table is clear ("cleared"), the attempt cap is reached ("attempt_cap") or the method
+returns no grasp ("no_grasp").
+
+Choices, documented:
+  * The task's objects are the ones on the table after the initial settle (objects that rolled out of
+    the workspace while the pile settled were never part of the task); the attempt cap is their count
+    + 5. Objects that leave the workspace while the pile re-settles after a removal stay in the count
+    (they were not grasped) and are listed in the log's "fell_out".
+  * Which object a grasp is on: the object with the most observed points in the closing region (by the
+    observation's ground-truth labels). A grasp with no object point between its fingers is a failed
+    attempt on "nothing" (outcome "no_object"), not simulated.
+  * A failed grasp leaves the objects where the trial left them (`envs.scene.after_trial`: knocked
+    over, dropped, pushed; then re-settled), as a real table would; the method re-plans on a new
+    observation with a new seed. A target dropped out of the workspace counts as not grasped.
+  * Scene seeds are `scene_seed(seed, index)`: the same (setting, seed, index) gives the identical
+    scene for every method. Plan seeds are `plan_seed(scene_seed, attempt)`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Sequence
+
+import numpy as np
+
+from envs import camera as camera_lib
+from envs import scene as scene_lib
+from envs import trial as trial_lib
+from eval.methods import Decision, Method
+from sgjax.gripper import GripperSpec
+
+LOG_VERSION = 1
+NO_OBJECT = "no_object"
+
+
+@dataclasses.dataclass(frozen=True)
+class Setting:
+    """A benchmark setting: how many objects per scene, from which object set."""
+
+    name: str
+    n_objects: int
+    object_set: str
+
+
+SETTINGS = {
+    s.name: s
+    for s in (Setting("seen-10", 10, "seen"), Setting("seen-20", 20, "seen"), Setting("unseen-10", 10, "unseen"))
+}
+
+
+def get_setting(name: str) -> Setting:
+    """The setting called `name` (seen-10, seen-20, unseen-10); ValueError listing them otherwise."""
+    if name not in SETTINGS:
+        raise ValueError(f"unknown setting {name!r}: expected one of {', '.join(SETTINGS)}")
+    return SETTINGS[name]
+
+
+@dataclasses.dataclass(frozen=True)
+class DeclutterConfig:
+    """Episode settings: attempts allowed beyond the object count, camera, scene, trial, trial backend."""
+
+    extra_attempts: int = 5
+    camera: camera_lib.CameraConfig = dataclasses.field(default_factory=camera_lib.CameraConfig)
+    scene: scene_lib.SceneConfig = dataclasses.field(default_factory=scene_lib.SceneConfig)
+    trial: trial_lib.TrialConfig = dataclasses.field(default_factory=trial_lib.TrialConfig)
+    gripper: GripperSpec = dataclasses.field(default_factory=GripperSpec)
+    backend: str = "cpu"
+    nthread: int = 0
+
+    def __post_init__(self):
+        if self.extra_attempts < 0:
+            raise ValueError(f"extra_attempts must be >= 0, got {self.extra_attempts}")
+        if self.backend not in ("cpu", "mjx"):
+            raise ValueError(f"backend must be 'cpu' or 'mjx', got {self.backend!r}")
+
+
+def scene_seed(seed: int, index: int) -> int:
+    """The seed of scene `index` of a run seeded `seed` (a uint32, independent of the method)."""
+    return int(np.random.SeedSequence([int(seed), int(index)]).generate_state(1)[0])
+
+
+def plan_seed(scene_seed_: int, attempt: int) -> int:
+    """The seed handed to the method for attempt `attempt` of a scene."""
+    return int(np.random.SeedSequence([int(scene_seed_), int(attempt), 1]).generate_state(1)[0])
+
+
+def closing_region_objects(
+    points: np.ndarray, labels: np.ndarray, pose: np.ndarray, width: float, spec: GripperSpec
+) -> dict[int, int]:
+    """Observed points of each object in the closing region of (pose [4, 4], width): {object: count}.
+
+    points [P, 3] world, labels [P] (object index, < 0 for the table / no object).
+    """
+    pose = np.asarray(pose, np.float64)
+    local = (np.asarray(points, np.float64) - pose[:3, 3]) @ pose[:3, :3]
+    inside = (
+        (np.abs(local[:, 0]) <= 0.5 * width)
+        & (np.abs(local[:, 1]) <= 0.5 * spec.finger_width)
+        & (local[:, 2] >= 0.0)
+        & (local[:, 2] <= spec.finger_length)
+        & (np.asarray(labels) >= 0)
+    )
+    ids, counts = np.unique(np.asarray(labels)[inside], return_counts=True)
+    return {int(i): int(c) for i, c in zip(ids, counts)}
+
+
+def _rigid(pose, method_name: str) -> np.ndarray:
+    """The method's pose as float64 [4, 4] with its rotation re-orthonormalised; ValueError if unusable."""
+    pose = np.asarray(pose, np.float64)
+    if pose.shape != (4, 4) or not np.isfinite(pose).all():
+        raise ValueError(f"method {method_name!r} returned a pose of shape {pose.shape} that is not finite [4, 4]")
+    u, s, vt = np.linalg.svd(pose[:3, :3])
+    if np.linalg.det(u @ vt) < 0 or np.abs(s - 1.0).max() > 1e-3:
+        raise ValueError(f"method {method_name!r} returned a pose whose rotation is not a rotation (singular values {s})")
+    out = np.eye(4)
+    out[:3, :3] = u @ vt
+    out[:3, 3] = pose[:3, 3]
+    return out
+
+
+def _json_info(info: dict) -> dict:
+    """Method extras made JSON-able (numpy scalars and arrays to Python)."""
+    out = {}
+    for key, value in (info or {}).items():
+        if isinstance(value, np.ndarray):
+            value = value.tolist()
+        elif isinstance(value, np.generic):
+            value = value.item()
+        out[str(key)] = value
+    return out
+
+
+@dataclasses.dataclass
+class SceneRun:
+    """One finished scene: its JSON-able log and the first observation (for pictures)."""
+
+    log: dict
+    first_observation: camera_lib.Observation
+
+
+def make_benchmark_scene(objects: Sequence, n_objects: int, seed: int, index: int, config: DeclutterConfig):
+    """Scene `index` of a run seeded `seed`: identical for every method."""
+    return scene_lib.make_scene(objects, n_objects, scene_seed(seed, index), config.scene, config.gripper)
+
+
+def run_scene(
+    method: Method,
+    objects: Sequence,
+    n_objects: int,
+    seed: int,
+    index: int,
+    config: DeclutterConfig | None = None,
+    setting: str = "",
+) -> SceneRun:
+    """Run one decluttering scene with `method` and return its log (see module doc for the rules).
+
+    log: {"version", "method", "setting", "seed", "scene_index", "scene_seed", "n_objects",
+    "objects" (on the table after settling), "object_names", "at_rest", "attempts" [...], "end",
+    "final_reason", "final_timing", "fell_out", "remaining", "wall_s"}; each attempt:
+    {"attempt", "target", "target_name", "outcome", "success", "score", "width", "pose" [4][4],
+    "points_in_gripper" {object: count}, "timing" {stage1_s, stage2_s, total_s}, "plan_seed",
+    "observe_s", "trial_s", "info"}.
+    """
+    start = time.perf_counter()
+    config = config or DeclutterConfig()
+    spec = config.gripper
+    s_seed = scene_seed(seed, index)
+    scene = make_benchmark_scene(objects, n_objects, seed, index, config)
+    present0 = np.flatnonzero(scene.present)
+    at_rest = bool(scene.at_rest)
+    cap = len(present0) + config.extra_attempts
+    viewpoint = np.asarray(config.camera.position, np.float64)
+    ground_truth = getattr(method, "uses_ground_truth", False)
+    attempts: list[dict] = []
+    fell_out: list[int] = []
+    end, final_reason, final_timing, first = "cleared", "", None, None
+    while True:
+        if not scene.present.any():
+            end = "cleared"
+            break
+        if len(attempts) >= cap:
+            end = "attempt_cap"
+            break
+        t0 = time.perf_counter()
+        obs = camera_lib.observe(scene, config.camera, seed=s_seed + len(attempts))
+        observe_s = time.perf_counter() - t0
+        first = obs if first is None else first
+        if ground_truth:
+            method.set_scene(scene)
+        p_seed = plan_seed(s_seed, len(attempts))
+        decision: Decision = method.plan(obs.points, obs.point_labels, viewpoint, p_seed)
+        if decision.pose is None:
+            end, final_reason, final_timing = "no_grasp", decision.reason or "no grasp", dict(decision.timing)
+            break
+        pose = _rigid(decision.pose, method.name)
+        width = float(np.clip(decision.width, 0.0, spec.max_opening))
+        counts = closing_region_objects(obs.points, obs.point_labels, pose, width, spec)
+        record = {
+            "attempt": len(attempts),
+            "target": None,
+            "target_name": None,
+            "outcome": NO_OBJECT,
+            "success": False,
+            "score": float(decision.score),
+            "width": width,
+            "pose": pose.tolist(),
+            "points_in_gripper": {str(k): v for k, v in counts.items()},
+            "timing": {k: float(v) for k, v in decision.timing.items()},
+            "plan_seed": p_seed,
+            "observe_s": observe_s,
+            "trial_s": 0.0,
+            "info": _json_info(decision.info),
+        }
+        attempts.append(record)
+        candidates = {k: v for k, v in counts.items() if scene.present[k]}
+        if not candidates:
+            continue
+        target = max(candidates, key=lambda k: (candidates[k], -k))
+        t0 = time.perf_counter()
+        result = trial_lib.run_trials(scene, target, pose[None], np.array([width]), backend=config.backend,
+                                      config=config.trial, nthread=config.nthread)
+        record["trial_s"] = time.perf_counter() - t0
+        outcome = trial_lib.Outcome(int(result.outcome[0]))
+        record.update(target=int(target), target_name=scene.assets[target].name, outcome=outcome.name.lower(),
+                      success=outcome == trial_lib.Outcome.SUCCESS)
+        before = scene.present.copy()
+        if record["success"]:
+            scene = scene_lib.remove_object(scene, target)
+        else:  # the objects stay where the failed grasp left them (knocked over, dropped)
+            scene = scene_lib.after_trial(scene, result.final_qpos[0])
+        fell_out += [int(i) for i in np.flatnonzero(before & ~scene.present) if i != target or not record["success"]]
+    if first is None:  # nothing on the table after settling: still keep a picture of the empty scene
+        first = camera_lib.observe(scene, config.camera, seed=s_seed)
+    log = {
+        "version": LOG_VERSION,
+        "method": method.name,
+        "setting": setting,
+        "seed": int(seed),
+        "scene_index": int(index),
+        "scene_seed": s_seed,
+        "n_objects": int(n_objects),
+        "objects": len(present0),
+        "object_names": [scene.assets[i].name for i in present0],
+        "at_rest": at_rest,
+        "attempts": attempts,
+        "end": end,
+        "final_reason": final_reason,
+        "final_timing": final_timing,
+        "fell_out": fell_out,
+        "remaining": int(scene.present.sum()),
+        "wall_s": time.perf_counter() - start,
+    }
+    return SceneRun(log, first)

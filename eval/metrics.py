@@ -1,0 +1,99 @@
+"""Decluttering metrics exactly as the paper defines them (Sec. V-A), from per-scene logs.
+
+Over N scenes:
+  * GSR (grasp success rate) = successful grasps / grasp attempts;
+  * TSR (task success rate)  = successful grasps / objects in the scenes;
+  * GA  (grasp attempts)     = total attempts (each scene capped at its objects + 5 by the harness).
+"Objects in a scene" are the objects on the table after the initial settle (objects that rolled out of
+the workspace while the pile settled were never part of the task). Rates are ratios of totals over all
+scenes (not means of per-scene rates); a rate with a zero denominator is None (no attempts / no objects).
+
+A scene log is a mapping with "objects" (int) and "attempts" (a list of mappings with a bool
+"success"), as `eval.declutter.run_scene` writes them. Pure functions, no I/O.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Iterable, Mapping
+
+import numpy as np
+
+TIMING_KEYS = ("stage1_s", "stage2_s", "total_s")
+
+
+@dataclasses.dataclass(frozen=True)
+class Summary:
+    """Totals and the paper's metrics over a set of scenes (rates in [0, 1], None if undefined)."""
+
+    scenes: int
+    objects: int
+    successes: int
+    attempts: int
+    cleared: int  # scenes whose every object was grasped
+    gsr: float | None
+    tsr: float | None
+
+    @property
+    def ga(self) -> int:
+        return self.attempts
+
+    def as_dict(self) -> dict:
+        """{"GSR", "TSR", "GA", "scenes", "objects", "successes", "attempts", "cleared"}."""
+        return {
+            "GSR": self.gsr,
+            "TSR": self.tsr,
+            "GA": self.ga,
+            "scenes": self.scenes,
+            "objects": self.objects,
+            "successes": self.successes,
+            "attempts": self.attempts,
+            "cleared": self.cleared,
+        }
+
+
+def rate(numerator: int, denominator: int) -> float | None:
+    """numerator / denominator, or None when the denominator is 0."""
+    return None if denominator == 0 else numerator / denominator
+
+
+def scene_counts(log: Mapping) -> tuple[int, int, int]:
+    """(objects, successes, attempts) of one scene log; ValueError if the log is inconsistent."""
+    objects = int(log["objects"])
+    attempts = list(log["attempts"])
+    successes = sum(bool(a["success"]) for a in attempts)
+    if objects < 0 or successes > objects:
+        raise ValueError(f"scene log with {objects} objects but {successes} successful grasps")
+    return objects, successes, len(attempts)
+
+
+def summarize(logs: Iterable[Mapping]) -> Summary:
+    """GSR, TSR, GA and totals over scene logs (an empty iterable gives zeros and None rates)."""
+    scenes = objects = successes = attempts = cleared = 0
+    for log in logs:
+        o, s, a = scene_counts(log)
+        scenes += 1
+        objects += o
+        successes += s
+        attempts += a
+        cleared += int(s == o)
+    return Summary(scenes, objects, successes, attempts, cleared, rate(successes, attempts), rate(successes, objects))
+
+
+def timing_summary(logs: Iterable[Mapping]) -> dict[str, tuple[float, float, int]]:
+    """Mean, standard deviation and count of each timing key over the executed grasps' plan calls.
+
+    -> {"stage1_s": (mean, std, n), "stage2_s": ..., "total_s": ...}; (nan, nan, 0) without attempts.
+    """
+    values: dict[str, list[float]] = {k: [] for k in TIMING_KEYS}
+    for log in logs:
+        for attempt in log["attempts"]:
+            timing = attempt.get("timing") or {}
+            for key in TIMING_KEYS:
+                if timing.get(key) is not None:
+                    values[key].append(float(timing[key]))
+    out = {}
+    for key, v in values.items():
+        arr = np.asarray(v, np.float64)
+        out[key] = (float(arr.mean()), float(arr.std()), len(arr)) if len(arr) else (float("nan"), float("nan"), 0)
+    return out

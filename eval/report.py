@@ -1,0 +1,282 @@
+"""Benchmark output: per-scene JSON logs, Table I / Table III style tables, pictures of scenes.
+
+Layout of an output directory (everything written atomically, so an interrupted run leaves no half
+file and a rerun with the same directory continues where it stopped):
+
+    OUT/logs/<method>/<setting>/seed<S>/scene_<iii>.json   one log per finished scene
+    OUT/pictures/<method>/<setting>/seed<S>/scene_<iii>.png the first scenes, with the executed grasps
+    OUT/results.csv, OUT/results.md                         every log under OUT, merged (Table I)
+    OUT/timing.csv                                          per-grasp planning time (Table III)
+
+results.md holds both tables. They are recomputed from all logs in OUT each time, so runs of other
+methods, settings or seeds into the same OUT add rows and columns.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import os
+import re
+from collections import defaultdict
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+
+import numpy as np
+
+from eval import metrics
+from sgjax.files import atomic_write
+from sgjax.gripper import GripperSpec
+
+LOGS = "logs"
+PICTURES = "pictures"
+PAPER_SETTINGS = ("seen-10", "seen-20", "unseen-10")
+
+
+# ---------------------------------------------------------------------------------------------------
+# Logs.
+
+
+def run_dir(out: str | os.PathLike, kind: str, method: str, setting: str, seed: int) -> Path:
+    """OUT/<kind>/<method>/<setting>/seed<S> (kind: "logs" or "pictures")."""
+    return Path(out) / kind / method / setting / f"seed{int(seed)}"
+
+
+def scene_log_path(out: str | os.PathLike, method: str, setting: str, seed: int, index: int) -> Path:
+    return run_dir(out, LOGS, method, setting, seed) / f"scene_{int(index):03d}.json"
+
+
+def picture_path(out: str | os.PathLike, method: str, setting: str, seed: int, index: int) -> Path:
+    return run_dir(out, PICTURES, method, setting, seed) / f"scene_{int(index):03d}.png"
+
+
+def _write_text(path: Path, text: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write(path, lambda tmp: Path(tmp).write_text(text))
+
+
+def write_scene_log(path: str | os.PathLike, log: Mapping) -> None:
+    """Write one scene log as JSON (atomically)."""
+    _write_text(Path(path), json.dumps(log, indent=1))
+
+
+def read_scene_log(path: str | os.PathLike) -> dict | None:
+    """The scene log at `path`, or None if there is none."""
+    try:
+        return json.loads(Path(path).read_text())
+    except FileNotFoundError:
+        return None
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"unreadable scene log {path}: {exc}") from exc
+
+
+def read_logs(out: str | os.PathLike) -> list[dict]:
+    """Every scene log under OUT/logs, in path order."""
+    root = Path(out) / LOGS
+    if not root.is_dir():
+        return []
+    paths = sorted(p for p in root.glob("*/*/seed*/scene_*.json") if re.fullmatch(r"scene_\d+\.json", p.name))
+    return [read_scene_log(p) for p in paths]
+
+
+# ---------------------------------------------------------------------------------------------------
+# Tables.
+
+
+def _group(logs: Iterable[Mapping]) -> dict[tuple[str, str, int], list[Mapping]]:
+    groups: dict[tuple[str, str, int], list[Mapping]] = defaultdict(list)
+    for log in logs:
+        groups[(log["method"], log["setting"], int(log["seed"]))].append(log)
+    return groups
+
+
+def _method_order(names: Iterable[str]) -> list[str]:
+    from eval.methods import METHODS
+
+    order = list(METHODS)
+    return sorted(set(names), key=lambda n: (order.index(n) if n in order else len(order), n))
+
+
+def _setting_order(names: Iterable[str]) -> list[str]:
+    return sorted(set(names), key=lambda s: (PAPER_SETTINGS.index(s) if s in PAPER_SETTINGS else len(PAPER_SETTINGS), s))
+
+
+def result_rows(logs: Iterable[Mapping]) -> list[dict]:
+    """One row per (method, setting, seed): metrics and per-grasp timing means (seconds)."""
+    rows = []
+    for (method, setting, seed), group in _group(logs).items():
+        summary = metrics.summarize(group)
+        timing = metrics.timing_summary(group)
+        row = {"method": method, "setting": setting, "seed": seed, **summary.as_dict()}
+        for key, (mean, std, _) in timing.items():
+            row[f"{key}_mean"], row[f"{key}_std"] = mean, std
+        rows.append(row)
+    methods, settings = _method_order(r["method"] for r in rows), _setting_order(r["setting"] for r in rows)
+    rows.sort(key=lambda r: (methods.index(r["method"]), settings.index(r["setting"]), r["seed"]))
+    return rows
+
+
+def percent(value: float | None) -> str:
+    return "–" if value is None or (isinstance(value, float) and math.isnan(value)) else f"{100 * value:.2f}%"
+
+
+def table_i_markdown(rows: list[dict]) -> str:
+    """Table I: methods x settings -> GSR, TSR, GA and the number of scenes N."""
+    columns = []
+    for row in rows:
+        if (row["setting"], row["seed"]) not in columns:
+            columns.append((row["setting"], row["seed"]))
+    settings = _setting_order(s for s, _ in columns)
+    columns.sort(key=lambda c: (settings.index(c[0]), c[1]))
+    several = {s for s in settings if sum(c[0] == s for c in columns) > 1}
+    labels = [f"{s} (seed {seed})" if s in several else s for s, seed in columns]
+    by_key = {(r["method"], r["setting"], r["seed"]): r for r in rows}
+    head = ["Method"] + [f"{label} {m}" for label in labels for m in ("GSR", "TSR", "GA", "N")]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for method in _method_order(r["method"] for r in rows):
+        cells = [method]
+        for setting, seed in columns:
+            r = by_key.get((method, setting, seed))
+            cells += ["", "", "", ""] if r is None else [percent(r["GSR"]), percent(r["TSR"]), str(r["GA"]), str(r["scenes"])]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def timing_rows(logs: Iterable[Mapping]) -> list[dict]:
+    """Table III rows: per method, Stage-1 / Stage-2 / total planning seconds per executed grasp."""
+    by_method: dict[str, list[Mapping]] = defaultdict(list)
+    for log in logs:
+        by_method[log["method"]].append(log)
+    rows = []
+    for method in _method_order(by_method):
+        timing = metrics.timing_summary(by_method[method])
+        row = {"method": method, "grasps": timing["total_s"][2]}
+        for key, (mean, std, _) in timing.items():
+            row[f"{key}_mean"], row[f"{key}_std"] = mean, std
+        rows.append(row)
+    return rows
+
+
+def _seconds(mean: float, std: float) -> str:
+    return "–" if math.isnan(mean) else f"{mean:.3f} ± {std:.3f}"
+
+
+def table_iii_markdown(rows: list[dict]) -> str:
+    """Table III: per method, mean ± std seconds of Stage-1, Stage-2 and the whole plan per grasp."""
+    lines = ["| Method | Stage-1 (s) | Stage-2 (s) | Total (s) | grasps |", "|---|---|---|---|---|"]
+    for r in rows:
+        cells = [_seconds(r[f"{k}_mean"], r[f"{k}_std"]) for k in metrics.TIMING_KEYS]
+        lines.append(f"| {r['method']} | " + " | ".join(cells) + f" | {r['grasps']} |")
+    return "\n".join(lines)
+
+
+def _csv(rows: list[dict]) -> str:
+    if not rows:
+        return ""
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=list(rows[0]), lineterminator="\n")
+    writer.writeheader()
+    for row in rows:
+        writer.writerow({k: "" if v is None else v for k, v in row.items()})
+    return buffer.getvalue()
+
+
+def write_tables(out: str | os.PathLike, machine: str = "") -> dict[str, Path]:
+    """Recompute results.csv, timing.csv and results.md from every log under OUT -> their paths."""
+    out = Path(out)
+    logs = read_logs(out)
+    rows, times = result_rows(logs), timing_rows(logs)
+    paths = {"results.csv": out / "results.csv", "timing.csv": out / "timing.csv", "results.md": out / "results.md"}
+    _write_text(paths["results.csv"], _csv(rows))
+    _write_text(paths["timing.csv"], _csv(times))
+    note = f" on {machine}" if machine else ""
+    text = (
+        "# Decluttering benchmark\n\n"
+        "## Grasping performance (Table I style)\n\n"
+        "GSR = successes / attempts, TSR = successes / objects, GA = total attempts, N = scenes "
+        "(attempts per scene capped at objects + 5).\n\n"
+        f"{table_i_markdown(rows)}\n\n"
+        f"## Planning time per grasp (Table III style{note})\n\n"
+        "Mean ± std over the executed grasps' plan calls (wall seconds; JIT compilation excluded by a "
+        "warm-up call).\n\n"
+        f"{table_iii_markdown(times)}\n"
+    )
+    _write_text(paths["results.md"], text)
+    return paths
+
+
+# ---------------------------------------------------------------------------------------------------
+# Pictures.
+
+
+def finger_footprints(pose: np.ndarray, width: float, spec: GripperSpec) -> list[np.ndarray]:
+    """The two fingers' outlines seen from above: convex hulls [V, 2] of their boxes' corners in x, y."""
+    from scipy.spatial import ConvexHull
+
+    t, half_y, length = spec.finger_thickness, 0.5 * spec.finger_width, spec.finger_length
+    out = []
+    for side in (-1.0, 1.0):
+        xs = side * (0.5 * width + np.array([0.0, t]))
+        corners = np.array([[x, y, z] for x in xs for y in (-half_y, half_y) for z in (0.0, length)])
+        world = corners @ np.asarray(pose)[:3, :3].T + np.asarray(pose)[:3, 3]
+        hull = ConvexHull(world[:, :2], qhull_options="QJ")
+        out.append(world[hull.vertices, :2])
+    return out
+
+
+def draw_scene(path: str | os.PathLike, observation, log: Mapping, spec: GripperSpec | None = None,
+               workspace: float = 0.5) -> None:
+    """A PNG of a scene: the first observation's cloud seen from above, coloured by object, with every
+    executed grasp drawn as a gripper outline (green: success, red: failure, numbered by attempt), and
+    the camera's label image beside it. Written atomically."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from sgjax.draw import gripper_outline
+
+    spec = spec or GripperSpec()
+    points, labels = np.asarray(observation.points), np.asarray(observation.point_labels)
+    half = 0.5 * workspace
+    near = np.all(np.abs(points[:, :2]) <= half + 0.05, axis=1)
+    table = near & (labels < 0)
+    table_pts = points[table][:: max(1, int(table.sum()) // 4000)]
+    obj = labels >= 0
+    obj_idx = np.flatnonzero(obj)[:: max(1, int(obj.sum()) // 20000)]
+    cmap = plt.get_cmap("tab20")
+
+    fig, axes = plt.subplots(1, 2, figsize=(12, 5.6))
+    ax = axes[0]
+    ax.scatter(table_pts[:, 0], table_pts[:, 1], s=0.3, c="0.85")
+    ax.scatter(points[obj_idx, 0], points[obj_idx, 1], s=0.6, c=[cmap(int(k) % 20) for k in labels[obj_idx]])
+    for attempt in log["attempts"]:
+        colour = "tab:green" if attempt["success"] else "tab:red"
+        pose = np.asarray(attempt["pose"])
+        for footprint in finger_footprints(pose, attempt["width"], spec):
+            ax.fill(footprint[:, 0], footprint[:, 1], facecolor="none", edgecolor=colour, linewidth=1.2)
+        segments = gripper_outline(pose, attempt["width"], spec)
+        for a, b in segments[2:4]:  # the bar between the fingers and the stem
+            ax.plot([a[0], b[0]], [a[1], b[1]], color=colour, linewidth=1.2)
+        ax.annotate(str(attempt["attempt"]), segments[1][1][:2], color=colour, fontsize=8)
+    ax.plot([-half, half, half, -half, -half], [-half, -half, half, half, -half], color="0.5", linewidth=0.8)
+    ax.set_xlim(-half - 0.02, half + 0.02)
+    ax.set_ylim(-half - 0.02, half + 0.02)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    successes = sum(a["success"] for a in log["attempts"])
+    ax.set_title(f"{log['method']} | {log['setting']} seed {log['seed']} scene {log['scene_index']}: "
+                 f"{successes}/{log['objects']} objects, {len(log['attempts'])} attempts ({log['end']})", fontsize=9)
+    image = np.asarray(observation.labels)
+    shown = np.where(image >= 0, image % 20, np.nan)
+    axes[1].imshow(np.where(image == -1, 0.85, np.nan), cmap="gray", vmin=0, vmax=1)
+    axes[1].imshow(shown, cmap="tab20", vmin=0, vmax=19, interpolation="nearest")
+    axes[1].set_title("camera view (object labels)", fontsize=9)
+    axes[1].axis("off")
+    fig.tight_layout()
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=110))
+    plt.close(fig)

@@ -1,0 +1,71 @@
+"""`supergrasp` and `supergrasp-norefine`: thin adapters over `sgjax.planner.Planner`.
+
+The planner is imported lazily, so the rest of the benchmark works without it. Options pass through:
+`model` (an ERNet, a `sgjax train` run directory, or None for the planner's default checkpoint),
+`small_db` (the small primitive database, for tests and smoke runs), `db` (a PrimitiveDB), `config`
+(a PlannerConfig; its `use_refinement` is set by the method's name; by default the Stage-2 scene cloud
+is cropped to the workspace and voxelised exactly as the labelling pipeline did for training).
+
+The table: unless the config sets `support_plane`, each plan gives the planner the plane z = median z
+of the observation's table points (labels < 0), as the GPD baseline does, so Stage 1 drops grasps that
+reach below the table. That is read from the observation, not from the simulator.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from eval.methods import Decision
+
+TIMING_KEYS = ("stage1_s", "stage2_s", "total_s")
+
+
+def table_plane(points: np.ndarray, labels: np.ndarray) -> tuple[float, float, float, float] | None:
+    """The table as (0, 0, 1, -z) with z the median height of the table points (labels < 0), or None."""
+    table = np.asarray(labels) < 0
+    if not table.any():
+        return None
+    z = float(np.median(np.asarray(points)[table, 2]))
+    return (0.0, 0.0, 1.0, -z)
+
+
+class PlannerMethod:
+    """A `Method` over `sgjax.planner.Planner` (with or without the refinement branch)."""
+
+    def __init__(self, name: str, use_refinement: bool, model=None, small_db: bool = False, db=None, config=None):
+        from sgjax.planner import Planner, PlannerConfig
+
+        if db is None and small_db:
+            from sgjax.primitive_db import DBConfig, load_database
+
+            db = load_database(DBConfig.small(), progress=False)
+        if config is None:  # the Stage-2 scene cloud exactly as in labelling (train/label.py)
+            from envs.scene import workspace_bounds
+            from train.label import LabelConfig
+
+            label = LabelConfig()
+            config = PlannerConfig(
+                max_scene_points=label.max_scene_points,
+                scene_voxel=label.voxel,
+                scene_bounds=workspace_bounds(label.scene, label.workspace_margin),
+            )
+        self.config = dataclasses.replace(config, use_refinement=use_refinement)
+        self.name = name
+        self.planner = Planner(model=model, db=db, config=self.config)
+
+    def plan(self, points: np.ndarray, labels: np.ndarray, viewpoint, seed: int = 0) -> Decision:
+        points, labels = np.asarray(points), np.asarray(labels)
+        if self.config.support_plane is None:
+            plane = table_plane(points, labels)
+            config = self.config if plane is None else dataclasses.replace(self.config, support_plane=plane)
+            if config != self.planner.config:
+                self.planner.config = config
+        plan = self.planner.plan(points, labels, np.asarray(viewpoint, np.float64), seed)
+        timing = {k: float((plan.timing or {}).get(k, 0.0)) for k in TIMING_KEYS}
+        info = {"kind": plan.kind, "target": plan.target, "n_candidates": int(plan.n_candidates),
+                "compiled": bool((plan.timing or {}).get("compiled", False))}
+        if plan.pose is None:
+            return Decision(None, 0.0, 0.0, plan.reason or "no grasp", timing, info)
+        return Decision(np.asarray(plan.pose, np.float64), float(plan.width), float(plan.score), "", timing, info)

@@ -1,0 +1,620 @@
+"""The SuperGrasp planner: Stage 1 candidates -> E-RNet scores -> one grasp (paper Sec. IV-D, IV-E).
+
+    plan = Planner(model, db).plan(scene_points, labels)     # every visible object of a scene
+    plan = Planner(model, db).plan_target(scene_points, target_points)   # one given object cloud
+    plan = Planner(model, db).plan_masked(scene_points, target_mask)     # one object by a bool mask
+    plan = sgjax.planner.plan(scene_points, mask_or_labels_or_target)    # cached default planner
+
+Stage 1 (`sgjax.stage1`) turns each object's single-view cloud into grasp candidates (superquadric
+fit, similarity matching, grasp transfer, coarse filtering, the rest of the scene as obstacles).
+Stage 2 scores all candidates of all objects in ONE jit-compiled E-RNet call on the whole scene
+cloud (`sgjax.ernet.score`), and the decision policy of the paper (Sec. IV-E, "During inference")
+picks the grasp (`decide`):
+
+  1. the candidate with the highest evaluation score is executed when that score exceeds
+     `eval_threshold` (0.7);
+  2. otherwise, when the highest refinement score over all candidates and variants exceeds
+     `refine_threshold` (0.7), that candidate is refined by that variant (deepen 0.008 m, rotate
+     -15 / 0 / +15 deg about the approach axis, `sgjax.gripper.refined_pose`) and executed;
+  3. otherwise there is no grasp, and `Plan.reason` says why.
+
+`use_refinement=False` skips step 2 (the paper's "without the refinement branch" ablation).
+
+Fixed shapes, so repeated plans never recompile: Stage 2 always scores `max_stage2_candidates`
+slots (padded and masked) on `max_scene_points` scene points (voxel grid + seeded uniform subsample,
+padded and masked, made as the labelling pipeline makes it: `pointcloud.scene_cloud`). Stage 1 runs
+objects in batches of the sizes in `stage1_batch_sizes` (default 4: 10 objects = 4 + 4 + 2 padded), so at most that many
+Stage-1 shapes are ever compiled. When Stage 1 yields more candidates than Stage 2 takes, every
+object keeps its best-matched ones: candidates are taken round-robin over objects in match order
+(rank 0 of every object, then rank 1, ...) up to the budget (`stage2_subset`).
+
+Everything is deterministic for a seed. Bad input (wrong shapes, NaN, mismatched labels, an empty
+cloud) raises ValueError naming the problem; a scene in which nothing can be grasped (no object with
+`min_object_points` points, no candidate, no score above the thresholds) gives a Plan with
+kind None and the reason.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import nnx
+
+from sgjax import ernet, gripper, pointcloud
+from sgjax.ernet import ERNet
+from sgjax.gripper import GripperSpec
+from sgjax.primitive_db import PrimitiveDB
+from sgjax.stage1 import Candidates, Stage1, Stage1Config
+
+DEFAULT_MODEL_DIR = Path(__file__).resolve().parent / "models" / "ernet_default"
+
+KIND_NONE, KIND_EVALUATED, KIND_REFINED = 0, 1, 2
+KIND_NAMES = {KIND_NONE: None, KIND_EVALUATED: "evaluated", KIND_REFINED: "refined"}
+
+
+@dataclasses.dataclass(frozen=True)
+class PlannerConfig:
+    """Planner settings (hashable).
+
+    stage1: Stage-1 settings (fit, matching, coarse filter, gripper spec; the spec is also Stage 2's).
+    eval_threshold, refine_threshold: the paper's 0.7 (a score must exceed it).
+    use_refinement: False = the paper's "w/o RNet" ablation (evaluated grasps only).
+    max_stage2_candidates: fixed Stage-2 batch; more candidates -> each object's best-matched first
+        (round-robin over objects in match order).
+    min_object_points: objects with fewer visible points are skipped (the reason is recorded).
+    max_scene_points, scene_voxel, scene_bounds: the Stage-2 scene cloud, made as in labelling
+        (`pointcloud.scene_cloud`: optional (lo [3], hi [3]) crop, one point per `scene_voxel` voxel,
+        then a seeded uniform subsample to at most max_scene_points, padded and masked). The defaults
+        match `train.label.LabelConfig`, so E-RNet sees the point density it was trained on.
+    support_plane: the table as (nx, ny, nz, d), free space n . x + d > 0, for Stage 1's filter (v)
+        (grippers reaching below the table); None: no such filter (e.g. camera-frame clouds).
+    stage1_batch_sizes: Stage-1 batch sizes (objects per call): objects run in chunks of the largest
+        size that fits those left, the smallest size padded when none fits, so at most one compile per
+        size is ever made. Default (4,): one compile (10 objects = 4 + 4 + 2 padded to 4), so the
+        first plan of a run compiles everything and later ones never stall.
+    """
+
+    stage1: Stage1Config = dataclasses.field(default_factory=Stage1Config)
+    eval_threshold: float = 0.7
+    refine_threshold: float = 0.7
+    use_refinement: bool = True
+    max_stage2_candidates: int = 512
+    min_object_points: int = 50
+    max_scene_points: int = 32768
+    scene_voxel: float = 0.003
+    scene_bounds: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
+    support_plane: tuple[float, float, float, float] | None = None
+    stage1_batch_sizes: tuple[int, ...] = (4,)
+
+    def __post_init__(self):
+        object.__setattr__(self, "stage1_batch_sizes", tuple(sorted({int(b) for b in self.stage1_batch_sizes})))
+        if not self.stage1_batch_sizes or self.stage1_batch_sizes[0] < 1:
+            raise ValueError(f"stage1_batch_sizes must be positive integers, got {self.stage1_batch_sizes}")
+        if self.max_stage2_candidates < 1 or self.max_scene_points < 1:
+            raise ValueError("max_stage2_candidates and max_scene_points must be >= 1")
+        if self.min_object_points < pointcloud.MIN_POINTS:
+            raise ValueError(f"min_object_points must be >= {pointcloud.MIN_POINTS} (a superquadric fit needs that many)")
+        if self.scene_bounds is not None:
+            lo, hi = (tuple(float(v) for v in b) for b in self.scene_bounds)
+            if len(lo) != 3 or len(hi) != 3 or not all(a < b for a, b in zip(lo, hi)):
+                raise ValueError(f"scene_bounds must be ((lo x, y, z), (hi x, y, z)) with lo < hi, got {self.scene_bounds}")
+            object.__setattr__(self, "scene_bounds", (lo, hi))
+        if self.support_plane is not None:
+            plane = tuple(float(v) for v in self.support_plane)
+            if len(plane) != 4 or not np.all(np.isfinite(plane)) or not any(plane[:3]):
+                raise ValueError(f"support_plane must be 4 finite numbers (nx, ny, nz, d), got {self.support_plane}")
+            object.__setattr__(self, "support_plane", plane)
+        if self.scene_voxel < 0:
+            raise ValueError(f"scene_voxel must be >= 0 (0: no voxel grid), got {self.scene_voxel}")
+        for name in ("eval_threshold", "refine_threshold"):
+            if not 0.0 <= getattr(self, name) < 1.0:
+                raise ValueError(f"{name} must be in [0, 1), got {getattr(self, name)}")
+
+    @property
+    def spec(self) -> GripperSpec:
+        return self.stage1.spec
+
+
+@dataclasses.dataclass
+class Plan:
+    """The planner's decision.
+
+    pose [4, 4] (gripper frame -> world; the refined pose when kind == "refined"), width (m), target
+    (object label the grasp is for; 0 for `plan_target`), score (eval prob, or the chosen variant's
+    refine prob), kind "evaluated" | "refined" | None (no grasp), refine_variant 0..K-1 when refined,
+    candidate_index (row of the `scores` arrays), reason (why no grasp, else None), n_candidates
+    (Stage-1 candidates over all objects), timing {"stage1_s", "stage2_s", "total_s", "compiled"}
+    (wall seconds of this call; "compiled" says whether it included a compilation), candidates (per
+    planned object: stage1.Candidates), scores (NumPy over the M scored candidates: eval_prob [M],
+    refine_prob [M, K], valid [M], target [M] label, object [M] index into `candidates`,
+    object_candidate [M] row in that Candidates), initial_pose [4, 4] (the chosen Stage-1 candidate,
+    before refinement), objects (per object label: points, candidates, reason when skipped/empty).
+    """
+
+    pose: np.ndarray | None
+    width: float | None
+    target: int | None
+    score: float
+    kind: str | None
+    refine_variant: int | None
+    candidate_index: int | None
+    reason: str | None
+    n_candidates: int
+    timing: dict
+    candidates: list
+    scores: dict
+    initial_pose: np.ndarray | None = None
+    objects: list = dataclasses.field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        """Whether there is a grasp to execute."""
+        return self.kind is not None
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready summary (no per-candidate arrays; see `scores` and `candidates` for those)."""
+        as_list = lambda a: None if a is None else np.round(np.asarray(a, np.float64), 6).tolist()
+        return {
+            "kind": self.kind,
+            "pose": as_list(self.pose),
+            "width": None if self.width is None else round(float(self.width), 6),
+            "target": self.target,
+            "score": round(float(self.score), 6),
+            "refine_variant": self.refine_variant,
+            "candidate_index": self.candidate_index,
+            "initial_pose": as_list(self.initial_pose),
+            "reason": self.reason,
+            "n_candidates": int(self.n_candidates),
+            "n_scored": len(self.scores.get("eval_prob", ())),
+            "timing": {k: (round(v, 6) if isinstance(v, float) else v) for k, v in self.timing.items()},
+            "objects": self.objects,
+        }
+
+
+# ---------------------------------------------------------------------------------------------
+# The decision policy (paper Sec. IV-E).
+
+
+def decide(eval_prob, refine_prob, valid, eval_threshold=0.7, refine_threshold=0.7, use_refinement=True):
+    """The paper's decision over M scored candidates; pure jnp and jittable (thresholds may be traced).
+
+    eval_prob [M], refine_prob [M, K], valid bool[M] (invalid candidates are never chosen; NaN scores
+    count as invalid) -> (index int32, kind int32 (0 none, 1 evaluated, 2 refined), variant int32,
+    score float32), each a scalar. Execute the best-evaluated candidate when its score exceeds
+    `eval_threshold`; else, if `use_refinement` and the best refinement score over all candidates and
+    variants exceeds `refine_threshold`, refine that candidate with that variant; else none. Index and
+    variant are -1 where they do not apply; for "none" the score is the best valid eval prob (0 if none).
+    Ties go to the lowest index.
+    """
+    eval_prob = jnp.asarray(eval_prob, jnp.float32)
+    refine_prob = jnp.asarray(refine_prob, jnp.float32)
+    valid = jnp.asarray(valid, bool)
+    if eval_prob.ndim != 1 or refine_prob.ndim != 2 or refine_prob.shape[0] != eval_prob.shape[0]:
+        raise ValueError(f"need eval_prob [M] and refine_prob [M, K], got {eval_prob.shape} and {refine_prob.shape}")
+    if valid.shape != eval_prob.shape:
+        raise ValueError(f"valid must have shape {eval_prob.shape}, got {valid.shape}")
+    m, k = refine_prob.shape
+    minus_one = jnp.int32(-1)
+    if m == 0:
+        return minus_one, jnp.int32(KIND_NONE), minus_one, jnp.float32(0.0)
+    valid = valid & jnp.isfinite(eval_prob) & jnp.all(jnp.isfinite(refine_prob), -1)
+    e = jnp.where(valid, eval_prob, -jnp.inf)
+    best = jnp.argmax(e).astype(jnp.int32)
+    best_eval = e[best]
+    take_eval = best_eval > eval_threshold
+    if k:
+        r = jnp.where(valid[:, None], refine_prob, -jnp.inf).reshape(-1)
+        flat = jnp.argmax(r).astype(jnp.int32)
+        take_refine = ~take_eval & jnp.asarray(use_refinement, bool) & (r[flat] > refine_threshold)
+        refine_index, refine_variant, refine_score = flat // k, flat % k, r[flat]
+    else:
+        take_refine, refine_index, refine_variant, refine_score = jnp.bool_(False), minus_one, minus_one, jnp.float32(0)
+    kind = jnp.where(take_eval, KIND_EVALUATED, jnp.where(take_refine, KIND_REFINED, KIND_NONE)).astype(jnp.int32)
+    index = jnp.where(take_eval, best, jnp.where(take_refine, refine_index, minus_one))
+    variant = jnp.where(take_refine, refine_variant, minus_one)
+    score = jnp.where(take_refine, refine_score, jnp.where(jnp.isfinite(best_eval), best_eval, 0.0))
+    return index, kind, variant, score.astype(jnp.float32)
+
+
+def select_grasp(
+    poses,
+    widths,
+    eval_prob,
+    refine_prob,
+    valid,
+    eval_threshold=0.7,
+    refine_threshold=0.7,
+    use_refinement=True,
+    spec: GripperSpec = ernet.DEFAULT_SPEC,
+) -> dict[str, jax.Array]:
+    """`decide`, then the pose to execute: poses [M, 4, 4], widths [M] and the scores of `decide` ->
+    {"index", "kind", "variant", "score", "pose" [4, 4], "initial_pose" [4, 4], "width"}. "pose" is
+    `gripper.refined_pose(poses[index], variant, spec)` when refined, poses[index] when evaluated
+    (meaningless when kind is 0). Pure jnp, jittable."""
+    index, kind, variant, score = decide(eval_prob, refine_prob, valid, eval_threshold, refine_threshold, use_refinement)
+    poses = jnp.asarray(poses, jnp.float32)
+    safe = jnp.maximum(index, 0)
+    initial = poses[safe]
+    refined = gripper.refined_pose(initial, jnp.maximum(variant, 0), spec)
+    pose = jnp.where(kind == KIND_REFINED, refined, initial)
+    return {
+        "index": index,
+        "kind": kind,
+        "variant": variant,
+        "score": score,
+        "pose": pose,
+        "initial_pose": initial,
+        "width": jnp.asarray(widths, jnp.float32)[safe],
+    }
+
+
+@functools.partial(jax.jit, static_argnames=("graphdef", "spec"))
+def _stage2(graphdef, state, scene, scene_mask, poses, widths, slots, key, thresholds, use_refinement, *, spec):
+    """One compiled Stage 2: E-RNet scores of the candidate slots (scene [S, 3] + mask, poses [C, 4, 4],
+    widths [C], slots bool[C]) and the decision."""
+    scores = ernet.score(graphdef, state, scene, poses, widths, scene_mask, spec=spec, key=key)
+    valid = scores.valid & slots
+    choice = select_grasp(
+        poses, widths, scores.eval_prob, scores.refine_prob, valid, thresholds[0], thresholds[1], use_refinement, spec
+    )
+    return {"eval_prob": scores.eval_prob, "refine_prob": scores.refine_prob, "valid": valid}, choice
+
+
+# ---------------------------------------------------------------------------------------------
+# Models.
+
+
+@functools.lru_cache(maxsize=1)
+def _load_default(path: str) -> ERNet:
+    return ernet.load_model(path)[0]
+
+
+def load_default_model() -> ERNet:
+    """The shipped E-RNet checkpoint (`sgjax/models/ernet_default/`, a `sgjax train` run directory).
+
+    Raises FileNotFoundError naming the path and how to make one when it is missing."""
+    if not (DEFAULT_MODEL_DIR / ernet.CHECKPOINT_DIR).is_dir():
+        raise FileNotFoundError(
+            f"no default E-RNet checkpoint at {DEFAULT_MODEL_DIR}: train one with "
+            "`sgjax train --data DIR --out RUN_DIR` and pass `--model RUN_DIR` (Planner(model=RUN_DIR) in Python), "
+            f"or copy a run directory to {DEFAULT_MODEL_DIR}"
+        )
+    return _load_default(str(DEFAULT_MODEL_DIR))
+
+
+def _as_model(model) -> ERNet:
+    if model is None:
+        return load_default_model()
+    if isinstance(model, ERNet):
+        return model
+    if isinstance(model, (str, os.PathLike)):
+        return ernet.load_model(model)[0]
+    raise TypeError(f"model must be an ERNet, a `sgjax train` run directory or None, got {type(model).__name__}")
+
+
+# ---------------------------------------------------------------------------------------------
+# Input checks (host side, clear errors).
+
+
+def _cloud(points, name: str) -> np.ndarray:
+    try:
+        arr = np.asarray(points, np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name}: not a numeric array ({exc})") from None
+    if arr.ndim != 2 or arr.shape[-1] != 3:
+        raise ValueError(f"{name} must have shape [N, 3], got {arr.shape}")
+    if len(arr) == 0:
+        raise ValueError(f"{name} is empty")
+    bad = ~np.all(np.isfinite(arr), axis=1)
+    if bad.any():
+        raise ValueError(f"{name} holds NaN or inf coordinates ({int(bad.sum())} of {len(arr)} points)")
+    return arr
+
+
+def _labels(labels, n: int) -> np.ndarray:
+    arr = np.asarray(labels)
+    if arr.dtype == bool:
+        raise ValueError("labels must be integer object ids; for a bool target mask use plan_target or sgjax.planner.plan")
+    if arr.ndim != 1 or len(arr) != n:
+        raise ValueError(f"labels must have shape [N] = ({n},) (one per scene point), got {arr.shape}")
+    if arr.dtype.kind == "f":
+        if not np.all(np.isfinite(arr)) or np.any(arr != np.round(arr)):
+            raise ValueError("labels must be integer object ids (< 0 = table/background)")
+        arr = arr.astype(np.int64)
+    elif arr.dtype.kind not in "iu":
+        raise ValueError(f"labels must be integer object ids, got dtype {arr.dtype}")
+    return arr.astype(np.int64)
+
+
+def _usable(points: np.ndarray) -> bool:
+    return len(points) > 0 and int(pointcloud.cloud_status(points, np.ones(len(points), bool))) == pointcloud.OK
+
+
+def _obstacles(others: np.ndarray, scene: np.ndarray) -> np.ndarray | None:
+    """Stage 1's obstacle cloud for one object: the rest of the scene; when that cannot pass Stage 1's
+    cloud check (e.g. an ideal table plane is coplanar), the whole scene (the target's own points in
+    the gripper are a collision anyway); None when neither can."""
+    if _usable(others):
+        return others
+    return scene if _usable(scene) else None
+
+
+def _viewpoint(viewpoint) -> np.ndarray:
+    v = np.asarray(viewpoint if viewpoint is not None else (0.0, 0.0, 0.0), np.float64)
+    if v.shape != (3,) or not np.all(np.isfinite(v)):
+        raise ValueError(f"viewpoint must be 3 finite numbers (the camera position), got {np.asarray(viewpoint).tolist()}")
+    return v
+
+
+# ---------------------------------------------------------------------------------------------
+# The planner.
+
+
+class Planner:
+    """Stage 1 + Stage 2 with the database and the E-RNet weights on the device.
+
+    model: an ERNet, a `sgjax train` run directory, or None (the shipped default, `load_default_model`);
+    db: a PrimitiveDB, or None (the default database from the cache, built on first use).
+    """
+
+    def __init__(self, model=None, db: PrimitiveDB | None = None, config: PlannerConfig = PlannerConfig()):
+        self.model = _as_model(model)
+        self.config = config
+        if self.model.config.n_refinements != config.spec.num_refinements:
+            raise ValueError(
+                f"the E-RNet predicts {self.model.config.n_refinements} refinements but the gripper spec has "
+                f"{config.spec.num_refinements}"
+            )
+        self.stage1 = Stage1(db, config.stage1)
+        self.graphdef, state = nnx.split(self.model)
+        # Restored checkpoints are committed to a device and fresh models are not; committedness is part
+        # of jit's cache key, so commit both: every Planner with this network shares one compiled Stage 2.
+        self.state = jax.device_put(state, jax.devices()[0])
+
+    # -- public entry points ------------------------------------------------------------------
+
+    def plan(self, scene_points, labels, viewpoint=(0.0, 0.0, 0.0), seed: int = 0) -> Plan:
+        """Plan over every visible object of a scene.
+
+        scene_points [N, 3] (metres, world frame); labels int [N]: the object id of each point, < 0 for
+        the table/background; viewpoint [3]: camera position (orients normals). Objects with fewer
+        than `min_object_points` points are skipped. Stage 1 sees each object with the rest of the
+        scene as obstacles; all candidates are scored in one Stage-2 call on the whole scene.
+        """
+        start = time.perf_counter()
+        scene = _cloud(scene_points, "scene_points")
+        labels = _labels(labels, len(scene))
+        view = _viewpoint(viewpoint)
+        ids, counts = np.unique(labels[labels >= 0], return_counts=True)
+        objects, skipped = [], []
+        for label, count in zip(ids.tolist(), counts.tolist()):
+            if count < self.config.min_object_points:
+                skipped.append({"label": label, "points": count, "candidates": 0,
+                                "reason": f"{count} visible points < min_object_points {self.config.min_object_points}"})
+            else:
+                objects.append((label, scene[labels == label], _obstacles(scene[labels != label], scene)))
+        if not objects:
+            if len(ids) == 0:
+                reason = "no object points: every label is < 0 (table/background)"
+            else:
+                listed = ", ".join(f"object {s['label']}: {s['points']}" for s in skipped[:8])
+                reason = f"no object with at least {self.config.min_object_points} visible points ({listed})"
+            return self._empty(reason, skipped, start)
+        return self._run(scene, objects, skipped, view, seed, start)
+
+    def plan_target(self, scene_points, target_points, viewpoint=(0.0, 0.0, 0.0), seed: int = 0) -> Plan:
+        """Plan for one given object cloud target_points [K, 3] in the scene scene_points [N, 3] (which
+        should contain the target's points: Stage 2 crops from it; None: the target alone). Target label 0."""
+        start = time.perf_counter()
+        target = _cloud(target_points, "target_points")
+        scene = target if scene_points is None else _cloud(scene_points, "scene_points")
+        return self._plan_one(scene, target, scene if _usable(scene) else None, _viewpoint(viewpoint), seed, start)
+
+    def plan_masked(self, scene_points, target_mask, viewpoint=(0.0, 0.0, 0.0), seed: int = 0) -> Plan:
+        """Plan for the object marked by target_mask bool [N] in scene_points [N, 3] (the other points are
+        Stage 1's obstacles; Stage 2 sees the whole scene). Target label 0."""
+        start = time.perf_counter()
+        scene = _cloud(scene_points, "scene_points")
+        mask = np.asarray(target_mask)
+        if mask.dtype != bool or mask.shape != (len(scene),):
+            raise ValueError(f"the target mask must be bool with shape [N] = ({len(scene)},), got {mask.dtype} {mask.shape}")
+        return self._plan_one(scene, scene[mask], _obstacles(scene[~mask], scene), _viewpoint(viewpoint), seed, start)
+
+    # -- internals ------------------------------------------------------------------------------
+
+    def _plan_one(self, scene, target, obstacles, view, seed, start) -> Plan:
+        if len(target) < self.config.min_object_points:
+            info = {"label": 0, "points": len(target), "candidates": 0,
+                    "reason": f"{len(target)} visible points < min_object_points {self.config.min_object_points}"}
+            return self._empty(f"target: {info['reason']}", [info], start)
+        return self._run(scene, [(0, target, obstacles)], [], view, seed, start)
+
+    def _empty(self, reason: str, objects: list, start: float, candidates=(), timing=None) -> Plan:
+        timing = timing or {"stage1_s": 0.0, "stage2_s": 0.0, "total_s": time.perf_counter() - start, "compiled": False}
+        spec_k = self.config.spec.num_refinements
+        scores = {"eval_prob": np.zeros(0, np.float32), "refine_prob": np.zeros((0, spec_k), np.float32),
+                  "valid": np.zeros(0, bool), "target": np.zeros(0, np.int64), "object": np.zeros(0, np.int64),
+                  "object_candidate": np.zeros(0, np.int64)}
+        n = sum(len(c) for c in candidates)
+        return Plan(None, None, None, 0.0, None, None, None, reason, n, timing, list(candidates), scores, None, objects)
+
+    def _stage1(self, clouds, obstacles, view, seed) -> list[Candidates]:
+        """Stage1.batch over chunks of the configured sizes: the largest size that fits the objects left,
+        and the smallest size padded with dummy clouds (reported bad, dropped) when none fits."""
+        sizes = self.config.stage1_batch_sizes
+        out: list[Candidates] = []
+        begin = 0
+        while begin < len(clouds):
+            left = len(clouds) - begin
+            size = max((b for b in sizes if b <= left), default=sizes[0])
+            part = list(clouds[begin : begin + size])
+            pad = size - len(part)
+            scenes = list(obstacles[begin : begin + size]) + [None] * pad
+            args = (part + [np.zeros((1, 3))] * pad, scenes, np.tile(view, (size, 1)), seed + begin)
+            plane = self.config.support_plane
+            result = self.stage1.batch(*args) if plane is None else self.stage1.batch(*args, support_plane=plane)
+            out.extend(result[: len(part)])
+            begin += len(part)
+        return out
+
+    def _scene(self, scene: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
+        """The fixed-size Stage-2 scene cloud: points [max_scene_points, 3] float32 and mask."""
+        cfg = self.config
+        if cfg.scene_voxel > 0:
+            points, mask, _ = pointcloud.scene_cloud(scene, cfg.max_scene_points, cfg.scene_voxel, None, cfg.scene_bounds, seed)
+            return points, mask
+        if cfg.scene_bounds is not None:
+            lo, hi = (np.asarray(b) for b in cfg.scene_bounds)
+            scene = scene[np.all((scene >= lo) & (scene <= hi), axis=1)]
+        pts = pointcloud.downsample(scene, cfg.max_scene_points, seed)
+        out = np.zeros((cfg.max_scene_points, 3), np.float32)
+        out[: len(pts)] = pts
+        return out, np.arange(cfg.max_scene_points) < len(pts)
+
+    def _run(self, scene, objects, skipped, view, seed, start) -> Plan:
+        cfg = self.config
+        compiled = _compile_count()
+        labels = [label for label, _, _ in objects]
+        candidates = self._stage1([o for _, o, _ in objects], [s for _, _, s in objects], view, seed)
+        t1 = time.perf_counter()
+        infos = sorted(
+            skipped + [{"label": lab, "points": len(o), "candidates": len(c), "reason": c.reason}
+                       for (lab, o, _), c in zip(objects, candidates)],
+            key=lambda d: d["label"],
+        )
+        n_candidates = sum(len(c) for c in candidates)
+        if n_candidates == 0:
+            detail = "; ".join(f"object {lab}: {c.reason}" for lab, c in zip(labels, candidates))
+            timing = {"stage1_s": t1 - start, "stage2_s": 0.0, "total_s": t1 - start, "compiled": _compile_count() != compiled}
+            return self._empty(f"no candidates: {detail}", infos, start, candidates, timing)
+
+        obj, row = stage2_subset([len(c) for c in candidates], cfg.max_stage2_candidates)
+        m, slots = len(obj), cfg.max_stage2_candidates
+        offsets = np.cumsum([0] + [len(c) for c in candidates])[:-1]
+        poses = np.tile(np.eye(4, dtype=np.float32), (slots, 1, 1))
+        widths = np.full(slots, np.nan, np.float32)  # padding slots: invalid for E-RNet, and masked
+        poses[:m] = np.concatenate([c.poses for c in candidates])[offsets[obj] + row]
+        widths[:m] = np.concatenate([c.widths for c in candidates])[offsets[obj] + row]
+        scene_pad, scene_mask = self._scene(scene, seed)
+        thresholds = np.array([cfg.eval_threshold, cfg.refine_threshold], np.float32)
+        out, choice = _stage2(
+            self.graphdef, self.state, scene_pad, scene_mask, poses, widths, np.arange(slots) < m,
+            jax.random.key(seed), thresholds, np.bool_(cfg.use_refinement), spec=cfg.spec,
+        )
+        out, choice = jax.tree.map(np.asarray, (out, choice))
+        t2 = time.perf_counter()
+        scores = {
+            "eval_prob": out["eval_prob"][:m],
+            "refine_prob": out["refine_prob"][:m],
+            "valid": out["valid"][:m],
+            "target": np.asarray(labels, np.int64)[obj],
+            "object": obj,
+            "object_candidate": row,
+        }
+        timing = {"stage1_s": t1 - start, "stage2_s": t2 - t1, "total_s": t2 - start, "compiled": _compile_count() != compiled}
+        kind = int(choice["kind"])
+        if kind == KIND_NONE:
+            plan = self._empty(self._why_not(scores, m), infos, start, candidates, timing)
+            plan.scores, plan.score = scores, float(choice["score"])
+            return plan
+        index = int(choice["index"])
+        initial = candidates[obj[index]].poses[row[index]]
+        refined = kind == KIND_REFINED
+        return Plan(
+            pose=choice["pose"].astype(np.float64) if refined else initial.copy(),
+            width=float(candidates[obj[index]].widths[row[index]]),
+            target=int(labels[obj[index]]),
+            score=float(choice["score"]),
+            kind=KIND_NAMES[kind],
+            refine_variant=int(choice["variant"]) if refined else None,
+            candidate_index=index,
+            reason=None,
+            n_candidates=n_candidates,
+            timing=timing,
+            candidates=candidates,
+            scores=scores,
+            initial_pose=initial.copy(),
+            objects=infos,
+        )
+
+    def _why_not(self, scores: dict, m: int) -> str:
+        cfg = self.config
+        valid = scores["valid"]
+        if not valid.any():
+            return f"none of the {m} scored candidates has a scene point in its closing region (E-RNet valid = False)"
+        best_eval = float(scores["eval_prob"][valid].max())
+        text = f"best eval {best_eval:.2f} <= {cfg.eval_threshold:g}"
+        if not cfg.use_refinement:
+            return text + " (refinement disabled)"
+        best_refine = float(scores["refine_prob"][valid].max())
+        return text + f" and best refine {best_refine:.2f} <= {cfg.refine_threshold:g}"
+
+
+def stage2_subset(counts, budget: int) -> tuple[np.ndarray, np.ndarray]:
+    """Which Stage-1 candidates Stage 2 scores: counts [B] (candidates per object, in match order) ->
+    (object [M], row [M]), M = min(sum(counts), budget). All of them when they fit; otherwise
+    round-robin over objects in match order (rank 0 of every object, then rank 1, ...), so every
+    object keeps its best-matched candidates. Returned in (object, row) order."""
+    obj = np.concatenate([np.full(n, i, np.int64) for i, n in enumerate(counts)] + [np.zeros(0, np.int64)])
+    row = np.concatenate([np.arange(n, dtype=np.int64) for n in counts] + [np.zeros(0, np.int64)])
+    if len(obj) > budget:
+        keep = np.sort(np.lexsort((obj, row))[:budget])  # by row, then object
+        obj, row = obj[keep], row[keep]
+    return obj, row
+
+
+def _compile_count() -> int:
+    from sgjax.stage1 import _pipeline
+
+    return _pipeline._cache_size() + _stage2._cache_size()
+
+
+# ---------------------------------------------------------------------------------------------
+# Convenience.
+
+
+@functools.lru_cache(maxsize=2)
+def _default_planner(config: PlannerConfig) -> Planner:
+    return Planner(None, None, config)
+
+
+def plan(
+    scene_points,
+    object_masks_or_target_points,
+    viewpoint=(0.0, 0.0, 0.0),
+    model=None,
+    db: PrimitiveDB | None = None,
+    config: PlannerConfig = PlannerConfig(),
+    seed: int = 0,
+) -> Plan:
+    """Plan a grasp in scene_points [N, 3]; the second argument says what to grasp:
+
+    int [N] labels (object id per point, < 0 background) -> `Planner.plan` over every object;
+    bool [N] target mask -> `Planner.plan_masked` (the unmasked points are Stage 1's obstacles);
+    bool [B, N] object masks (disjoint) -> labels 0..B-1; float [K, 3] target points -> `plan_target`.
+    With model and db None, a cached default Planner is used (built once per config); otherwise a new
+    Planner is built per call (build one yourself for repeated calls).
+    """
+    planner = _default_planner(config) if model is None and db is None else Planner(model, db, config)
+    scene = _cloud(scene_points, "scene_points")
+    what = np.asarray(object_masks_or_target_points)
+    if what.dtype == bool and what.ndim == 1:
+        return planner.plan_masked(scene, what, viewpoint, seed)
+    if what.dtype == bool and what.ndim == 2:
+        if what.shape[1] != len(scene):
+            raise ValueError(f"object masks must have shape [B, N] with N = {len(scene)}, got {what.shape}")
+        if np.any(what.sum(0) > 1):
+            raise ValueError("object masks overlap: a point belongs to more than one object")
+        labels = np.where(what.any(0), np.argmax(what, 0), -1)
+        return planner.plan(scene, labels, viewpoint, seed)
+    if what.ndim == 2:
+        return planner.plan_target(scene, what, viewpoint, seed)
+    return planner.plan(scene, what, viewpoint, seed)

@@ -1,0 +1,288 @@
+"""Decluttering benchmark: metrics on hand-made logs, the episode rules on real MuJoCo scenes of the tiny
+set (oracle, GPD baseline and, when installed, the SuperGrasp planner), seeds, resume, bad input."""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib.util
+import json
+
+import numpy as np
+import pytest
+
+from envs.camera import CameraConfig
+from envs.objects import tiny_object_set
+from eval import declutter, metrics, report
+from eval.benchmark import run_benchmark
+from eval.declutter import DeclutterConfig, run_scene
+from eval.methods import (
+    METHODS,
+    Decision,
+    MethodUnavailable,
+    UnknownMethod,
+    make_method,
+)
+from sgjax.cli import main
+
+# Small camera images keep each observation at ~60 ms; 3-4 objects keep a scene at a few seconds.
+CONFIG = DeclutterConfig(camera=CameraConfig(width=320, height=240), nthread=1)
+N_OBJECTS = 4
+
+
+@pytest.fixture(scope="module")
+def objects():
+    return tiny_object_set()
+
+
+@pytest.fixture(scope="module")
+def oracle_run(objects):
+    return run_scene(make_method("oracle-topdown"), objects, N_OBJECTS, seed=0, index=0, config=CONFIG, setting="tiny-4")
+
+
+@pytest.fixture(scope="module")
+def gpd_run(objects):
+    return run_scene(make_method("gpd"), objects, N_OBJECTS, seed=0, index=0, config=CONFIG, setting="tiny-4")
+
+
+def timing(total: float = 0.1) -> dict:
+    return {"stage1_s": total / 2, "stage2_s": total / 2, "total_s": total}
+
+
+class Never:
+    """Returns no grasp."""
+
+    name = "never"
+
+    def __init__(self):
+        self.calls = 0
+
+    def plan(self, points, labels, viewpoint, seed=0):
+        self.calls += 1
+        return Decision(None, 0.0, 0.0, "nothing to do", timing())
+
+
+class InTheAir:
+    """A top-down grasp far from every object: nothing between the fingers, every time."""
+
+    name = "in-the-air"
+
+    def plan(self, points, labels, viewpoint, seed=0):
+        pose = np.eye(4)
+        pose[:3, :3] = np.diag([1.0, -1.0, -1.0])
+        pose[:3, 3] = [0.2, 0.2, 0.3]
+        return Decision(pose, 0.2, 0.5, "", timing())  # width above max_opening: clipped by the harness
+
+
+# ---------------------------------------------------------------------------------------------
+# Metrics on hand-made logs.
+
+
+def log(objects: int, outcomes: str, **extra) -> dict:
+    """A scene log: 's' = successful attempt, 'f' = failed attempt."""
+    attempts = [{"success": c == "s", "timing": timing(0.2 if c == "s" else 0.4)} for c in outcomes]
+    return {"objects": objects, "attempts": attempts, **extra}
+
+
+def test_metrics_are_ratios_of_totals_as_in_the_paper():
+    logs = [log(10, "s" * 9 + "f"), log(10, "sfsfs"), log(5, "")]
+    summary = metrics.summarize(logs)
+    assert (summary.scenes, summary.objects, summary.successes, summary.attempts) == (3, 25, 12, 15)
+    assert summary.gsr == pytest.approx(12 / 15) and summary.tsr == pytest.approx(12 / 25)
+    assert summary.ga == 15 and summary.cleared == 0
+    assert summary.as_dict() == {"GSR": 0.8, "TSR": 0.48, "GA": 15, "scenes": 3, "objects": 25, "successes": 12,
+                                 "attempts": 15, "cleared": 0}
+    assert metrics.summarize([log(2, "fss")]).cleared == 1
+    # Zero denominators: no attempts -> GSR undefined; no objects -> TSR undefined.
+    empty = metrics.summarize([log(3, ""), log(0, "")])
+    assert empty.gsr is None and empty.tsr == 0.0 and empty.ga == 0
+    assert metrics.summarize([]).tsr is None and metrics.summarize([]).gsr is None
+    with pytest.raises(ValueError, match="3 successful grasps"):
+        metrics.summarize([log(2, "sss")])
+
+
+def test_timing_summary_is_per_executed_grasp():
+    times = metrics.timing_summary([log(3, "ssf"), log(1, "")])
+    mean, std, n = times["total_s"]
+    assert n == 3 and mean == pytest.approx(0.8 / 3) and std == pytest.approx(np.std([0.2, 0.2, 0.4]))
+    assert times["stage1_s"][0] == pytest.approx(0.4 / 3)
+    assert np.isnan(metrics.timing_summary([log(1, "")])["total_s"][0])
+
+
+def test_tables_follow_table_i_and_table_iii():
+    logs = [
+        log(10, "ssff", method="gpd", setting="seen-10", seed=0),
+        log(10, "s", method="supergrasp", setting="seen-10", seed=0),
+        log(20, "ss", method="supergrasp", setting="seen-20", seed=0),
+    ]
+    rows = report.result_rows(logs)
+    assert [(r["method"], r["setting"]) for r in rows] == [("supergrasp", "seen-10"), ("supergrasp", "seen-20"), ("gpd", "seen-10")]
+    table = report.table_i_markdown(rows)
+    assert "| Method | seen-10 GSR | seen-10 TSR | seen-10 GA | seen-10 N | seen-20 GSR" in table
+    assert "| gpd | 50.00% | 20.00% | 4 | 1 |  |  |  |  |" in table
+    assert "| supergrasp | 100.00% | 10.00% | 1 | 1 | 100.00% | 10.00% | 2 | 1 |" in table
+    timing_table = report.table_iii_markdown(report.timing_rows(logs))
+    assert "| gpd | 0.150 ± 0.050 | 0.150 ± 0.050 | 0.300 ± 0.100 | 4 |" in timing_table
+
+
+# ---------------------------------------------------------------------------------------------
+# Episodes on real scenes.
+
+
+def test_oracle_clears_the_tiny_scene_and_the_log_follows_the_rules(oracle_run):
+    log_ = oracle_run.log
+    attempts = log_["attempts"]
+    assert log_["objects"] == N_OBJECTS and len(log_["object_names"]) == N_OBJECTS
+    assert len(attempts) <= log_["objects"] + 5
+    successes = [a for a in attempts if a["success"]]
+    assert len(successes) >= N_OBJECTS - 1  # the oracle clears (nearly) every object
+    targets = [a["target"] for a in successes]
+    assert len(set(targets)) == len(targets)  # a grasped object is gone from the scene
+    assert log_["remaining"] == log_["objects"] - len(successes) - len(log_["fell_out"])
+    if log_["end"] == "cleared":
+        assert log_["remaining"] == 0
+    for a in attempts:
+        assert a["outcome"] in {"success", "collision_pregrasp", "collision_approach", "dropped_lift",
+                                "dropped_reorient", "dropped_disturbance", "invalid"}
+        assert set(a["timing"]) >= set(metrics.TIMING_KEYS)
+        assert np.asarray(a["pose"]).shape == (4, 4) and 0 < a["width"] <= 0.08
+        assert a["points_in_gripper"][str(a["target"])] == max(a["points_in_gripper"].values())
+    json.dumps(log_)  # JSON-able
+
+
+def test_gpd_baseline_runs_a_tiny_scene(gpd_run):
+    log_ = gpd_run.log
+    assert log_["method"] == "gpd" and log_["objects"] == N_OBJECTS
+    assert 1 <= len(log_["attempts"]) <= N_OBJECTS + 5
+    assert sum(a["success"] for a in log_["attempts"]) >= 1
+    for a in log_["attempts"]:
+        pose = np.asarray(a["pose"])
+        np.testing.assert_allclose(pose[:3, :3].T @ pose[:3, :3], np.eye(3), atol=1e-9)
+        assert pose[2, 2] < -0.4  # approach within 60 deg of straight down (z of the approach axis)
+        assert a["timing"]["total_s"] == pytest.approx(a["timing"]["stage1_s"] + a["timing"]["stage2_s"])
+    assert log_["end"] in ("cleared", "attempt_cap", "no_grasp")
+
+
+def test_same_seed_same_scene_for_every_method(objects, oracle_run, gpd_run):
+    first, second = oracle_run.first_observation, gpd_run.first_observation
+    np.testing.assert_array_equal(first.points, second.points)
+    np.testing.assert_array_equal(first.point_labels, second.point_labels)
+    assert oracle_run.log["scene_seed"] == gpd_run.log["scene_seed"] == declutter.scene_seed(0, 0)
+    assert oracle_run.log["object_names"] == gpd_run.log["object_names"]
+    # Another index or run seed gives another scene.
+    seeds = {declutter.scene_seed(s, i) for s in range(3) for i in range(3)}
+    assert len(seeds) == 9
+    other = declutter.make_benchmark_scene(objects, N_OBJECTS, 0, 1, CONFIG)
+    assert not np.array_equal(other.state, declutter.make_benchmark_scene(objects, N_OBJECTS, 0, 0, CONFIG).state)
+
+
+def test_attempts_are_capped_at_objects_plus_five(objects):
+    run = run_scene(InTheAir(), objects, 3, seed=0, index=0, config=CONFIG)
+    attempts = run.log["attempts"]
+    assert run.log["end"] == "attempt_cap" and len(attempts) == run.log["objects"] + 5
+    assert all(a["outcome"] == declutter.NO_OBJECT and a["target"] is None for a in attempts)
+    assert all(a["width"] == 0.08 for a in attempts)  # clipped to max_opening
+    assert run.log["remaining"] == run.log["objects"]
+    fewer = run_scene(InTheAir(), objects, 3, seed=0, index=0, config=dataclasses.replace(CONFIG, extra_attempts=1))
+    assert len(fewer.log["attempts"]) == fewer.log["objects"] + 1
+
+
+def test_no_grasp_ends_the_scene(objects):
+    method = Never()
+    run = run_scene(method, objects, 3, seed=0, index=0, config=CONFIG)
+    assert method.calls == 1 and run.log["attempts"] == []
+    assert run.log["end"] == "no_grasp" and run.log["final_reason"] == "nothing to do"
+    summary = metrics.summarize([run.log])
+    assert summary.gsr is None and summary.tsr == 0.0 and summary.ga == 0
+
+
+# ---------------------------------------------------------------------------------------------
+# Output directory, resume, CLI.
+
+
+def test_benchmark_resumes_and_writes_tables_and_pictures(tmp_path, objects):
+    args = {"setting": "seen-10", "seed": 0, "out": tmp_path, "objects": "tiny", "object_assets": objects,
+            "n_objects": 2, "config": CONFIG, "pictures": 1, "progress": False}
+    first = run_benchmark("oracle-topdown", scenes=1, **args)
+    assert (first.ran, first.resumed, first.setting) == (1, 0, "tiny-2")
+    path = report.scene_log_path(tmp_path, "oracle-topdown", "tiny-2", 0, 0)
+    stamp = path.stat().st_mtime_ns
+    second = run_benchmark("oracle-topdown", scenes=2, **args)
+    assert (second.ran, second.resumed) == (1, 1) and second.summary.scenes == 2
+    assert path.stat().st_mtime_ns == stamp  # the finished scene was not rerun
+    assert second.logs[0] == json.loads(path.read_text())
+    assert report.picture_path(tmp_path, "oracle-topdown", "tiny-2", 0, 0).stat().st_size > 0
+    assert not report.picture_path(tmp_path, "oracle-topdown", "tiny-2", 0, 1).exists()  # pictures=1
+    csv_text = (tmp_path / "results.csv").read_text()
+    assert csv_text.startswith("method,setting,seed,GSR,TSR,GA,scenes") and "oracle-topdown,tiny-2,0," in csv_text
+    assert "| oracle-topdown |" in (tmp_path / "results.md").read_text()
+    assert second.as_dict()["GA"] == second.summary.attempts
+    # A log written under other settings is not silently reused.
+    with pytest.raises(ValueError, match="different configuration"):
+        run_benchmark("oracle-topdown", scenes=1, **{**args, "config": dataclasses.replace(CONFIG, extra_attempts=2)})
+
+
+def test_bad_input_is_reported_clearly(tmp_path, objects, capsys):
+    with pytest.raises(UnknownMethod, match="expected one of supergrasp, supergrasp-norefine, gpd"):
+        make_method("gdp")
+    with pytest.raises(MethodUnavailable, match="not available yet"):
+        make_method("contact-graspnet")
+    with pytest.raises(ValueError, match="does not take option"):
+        make_method("gpd", model="runs/x")
+    with pytest.raises(ValueError, match="unknown setting 'seen-30'"):
+        run_benchmark("gpd", setting="seen-30", out=tmp_path, object_assets=objects, progress=False)
+    with pytest.raises(ValueError, match="scenes must be >= 1"):
+        run_benchmark("gpd", scenes=0, out=tmp_path, object_assets=objects, progress=False)
+    assert main(["declutter", "--method", "gdp", "--out", str(tmp_path)]) == 2
+    assert "unknown method 'gdp'" in capsys.readouterr().err
+    assert main(["declutter", "--method", "gpd", "--setting", "seen-30", "--out", str(tmp_path)]) == 2
+    assert "unknown setting" in capsys.readouterr().err
+    assert not (tmp_path / "logs").exists()
+
+
+def test_cli_runs_on_a_user_mesh_folder_and_prints_json(tmp_path, capsys):
+    import trimesh
+
+    folder = tmp_path / "my_meshes"
+    folder.mkdir()
+    trimesh.creation.box((0.04, 0.05, 0.06)).export(folder / "block.obj")
+    trimesh.creation.cylinder(radius=0.025, height=0.08, sections=16).export(folder / "can.stl")
+    code = main(["declutter", "--method", "oracle-topdown", "--objects", str(folder), "--n-objects", "2",
+                 "--scenes", "1", "--out", str(tmp_path / "out"), "--json", "--quiet", "--pictures", "0"])
+    assert code == 0
+    result = json.loads(capsys.readouterr().out)
+    assert {"GSR", "TSR", "GA", "scenes"} <= set(result) and result["scenes"] == 1
+    assert result["setting"] == "my_meshes-2" and result["GA"] >= 1
+    log_ = json.loads(report.scene_log_path(tmp_path / "out", "oracle-topdown", "my_meshes-2", 0, 0).read_text())
+    assert set(log_["object_names"]) <= {"my_meshes/block", "my_meshes/can"}
+
+
+# ---------------------------------------------------------------------------------------------
+# SuperGrasp adapters (when the planner is installed).
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(importlib.util.find_spec("sgjax.planner") is None, reason="sgjax.planner is not installed")
+def test_supergrasp_methods_run_a_tiny_scene(objects, small_db):
+    import jax.numpy as jnp
+    from flax import nnx
+
+    from sgjax.ernet import ERNet, ERNetConfig
+    from sgjax.planner import PlannerConfig
+
+    # A tiny E-RNet rigged to rate every candidate 0.98, so the planner always executes a grasp.
+    tiny = ERNetConfig.tiny(backbone=dataclasses.replace(ERNetConfig.tiny().backbone, sampler="random"))
+    model = ERNet(tiny, rngs=nnx.Rngs(0))
+    last = model.eval_head.layers[-1]
+    last.kernel[...] = jnp.zeros_like(last.kernel[...])
+    last.bias[...] = jnp.asarray([-2.0, 2.0], jnp.float32)
+    config = PlannerConfig(max_stage2_candidates=64, max_scene_points=4096, stage1_batch_sizes=(1,))
+    for name in ("supergrasp", "supergrasp-norefine"):
+        assert METHODS[name].unavailable_reason() is None
+        method = make_method(name, model=model, db=small_db, config=config)
+        assert method.name == name and method.planner.config.use_refinement == (name == "supergrasp")
+        run = run_scene(method, objects, 2, seed=0, index=0, config=CONFIG, setting="tiny-2")
+        attempts = run.log["attempts"]
+        assert 1 <= len(attempts) <= run.log["objects"] + 5
+        assert all(a["info"]["kind"] in ("evaluated", "refined") for a in attempts)
+        assert all(a["score"] == pytest.approx(0.982, abs=1e-3) for a in attempts)
+        assert all(set(a["timing"]) == set(metrics.TIMING_KEYS) for a in attempts)

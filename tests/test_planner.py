@@ -1,0 +1,341 @@
+"""Planner: the paper's decision policy on hand-set scores, Stage 1 + Stage 2 end to end (tiny random
+E-RNet, small database, synthetic tabletop), fixed shapes, bad input, and the `sgjax plan` command."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from flax import nnx
+
+from sgjax import planner as planner_mod
+from sgjax import synthetic
+from sgjax.ernet import ERNet, ERNetConfig
+from sgjax.gripper import GripperSpec, refined_pose
+from sgjax.planner import Planner, PlannerConfig, decide, select_grasp
+from sgjax.superquadric import Superquadric
+
+SPEC = GripperSpec()
+CAMERA = np.array([0.4, -0.1, 0.6])
+# Random centroid sampling compiles faster than FPS. One Stage-1 shape (batches of 1 object) and the
+# default Stage-2 shapes, which `sgjax plan` (default config) then reuses: two compiles in all.
+TINY = ERNetConfig.tiny(backbone=dataclasses.replace(ERNetConfig.tiny().backbone, sampler="random"))
+CONFIG = PlannerConfig(stage1_batch_sizes=(1,))
+
+
+def box(centre_xy, half, yaw_deg, seed, n=600):
+    """A single-view cloud of a box standing on the table (z = 0), seen from CAMERA."""
+    c, s = np.cos(np.deg2rad(yaw_deg)), np.sin(np.deg2rad(yaw_deg))
+    rot = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+    centre = np.array([*centre_xy, half[2]])
+    sq = Superquadric.create(np.asarray(half), (0.1, 0.1), rot, centre)
+    cloud = synthetic.single_view_cloud(sq, n, view=CAMERA - centre, seed=seed)
+    return cloud[cloud[:, 2] > 0.002]
+
+
+def tabletop(n_objects=2, seed=0, table=40):
+    """-> (scene [N, 3], labels [N]): a noisy table plane (label -1) and boxes labelled 0, 1, ..."""
+    rng = np.random.default_rng(seed)
+    xs, ys = np.meshgrid(np.linspace(-0.25, 0.25, table), np.linspace(-0.25, 0.25, table))
+    clouds = [np.c_[xs.ravel(), ys.ravel(), rng.normal(0, 0.001, xs.size)]]
+    labels = [np.full(xs.size, -1)]
+    placements = [((0.1, 0.0), (0.03, 0.02, 0.04), 25), ((-0.1, 0.06), (0.025, 0.025, 0.05), 70)]
+    for i in range(n_objects):
+        clouds.append(box(*placements[i], seed=seed + i))
+        labels.append(np.full(len(clouds[-1]), i))
+    return np.concatenate(clouds), np.concatenate(labels)
+
+
+def rigged(eval_bias, refine_bias, seed=0):
+    """A tiny ERNet whose heads ignore their input: eval logits `eval_bias` [2], refine logits [3]."""
+    model = ERNet(TINY, rngs=nnx.Rngs(seed))
+    for head, bias in ((model.eval_head, eval_bias), (model.refine_head, refine_bias)):
+        last = head.layers[-1]
+        last.kernel[...] = jnp.zeros_like(last.kernel[...])
+        last.bias[...] = jnp.asarray(bias, jnp.float32)
+    return model
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return tabletop()
+
+
+@pytest.fixture(scope="module")
+def planner(small_db):
+    return Planner(ERNet(TINY, rngs=nnx.Rngs(0)), small_db, CONFIG)
+
+
+@pytest.fixture(scope="module")
+def first_plan(planner, scene):
+    return planner.plan(*scene, viewpoint=CAMERA, seed=0)
+
+
+# ---------------------------------------------------------------------------------------------
+# The decision policy on hand-set scores.
+
+REFINE = np.array([[0.1, 0.2, 0.3], [0.6, 0.95, 0.2], [0.9, 0.1, 0.1], [0.99, 0.99, 0.99]], np.float32)
+VALID = np.array([True, True, True, False])
+
+
+def as_tuple(out):
+    index, kind, variant, score = (np.asarray(x).item() for x in out)
+    return index, kind, variant, pytest.approx(score, abs=1e-6)
+
+
+def test_evaluated_grasp_wins_when_its_score_exceeds_the_threshold():
+    out = decide(np.array([0.5, 0.9, 0.8, 0.99], np.float32), REFINE, VALID)
+    assert as_tuple(out) == (1, 1, -1, 0.9)  # the invalid 0.99 is never chosen
+
+
+def test_refinement_fallback_picks_the_best_candidate_and_variant():
+    eval_prob = np.array([0.6, 0.3, 0.7, 0.99], np.float32)  # 0.7 does not exceed 0.7
+    assert as_tuple(decide(eval_prob, REFINE, VALID)) == (1, 2, 1, 0.95)
+    # Only above the refine threshold; otherwise no grasp, scored by the best valid eval prob.
+    assert as_tuple(decide(eval_prob, REFINE, VALID, refine_threshold=0.95)) == (-1, 0, -1, 0.7)
+    assert as_tuple(decide(eval_prob, REFINE * 0.5, VALID)) == (-1, 0, -1, 0.7)
+    # The paper's "w/o RNet" ablation never refines.
+    assert as_tuple(decide(eval_prob, REFINE, VALID, use_refinement=False)) == (-1, 0, -1, 0.7)
+    # Thresholds, like the scores, may be traced: one compile serves all.
+    traces = []
+
+    def traced(*args):
+        traces.append(1)
+        return decide(*args)
+
+    jitted = jax.jit(traced)
+    assert as_tuple(jitted(eval_prob, REFINE, VALID, 0.7, 0.7, True)) == (1, 2, 1, 0.95)
+    assert as_tuple(jitted(eval_prob, REFINE, VALID, 0.5, 0.7, True)) == (2, 1, -1, 0.7)
+    assert as_tuple(jitted(eval_prob, REFINE, VALID, 0.7, 0.7, False)) == (-1, 0, -1, 0.7)
+    assert len(traces) == 1
+
+
+def test_invalid_and_nan_candidates_are_never_chosen():
+    none_valid = np.zeros(4, bool)
+    assert as_tuple(decide(np.ones(4, np.float32), REFINE, none_valid)) == (-1, 0, -1, 0.0)
+    eval_prob = np.array([np.nan, 0.8, 0.2, 0.1], np.float32)
+    assert as_tuple(decide(eval_prob, REFINE, np.ones(4, bool))) == (1, 1, -1, 0.8)
+    assert as_tuple(decide(np.zeros(0), np.zeros((0, 3)), np.zeros(0, bool))) == (-1, 0, -1, 0.0)
+    with pytest.raises(ValueError, match="refine_prob"):
+        decide(np.zeros(4), np.zeros(4), VALID)
+    with pytest.raises(ValueError, match="valid must have shape"):
+        decide(np.zeros(4), REFINE, VALID[:2])
+
+
+def test_selected_pose_is_the_refined_pose():
+    rng = np.random.default_rng(0)
+    poses = np.tile(np.eye(4, dtype=np.float32), (4, 1, 1))
+    poses[:, :3, 3] = rng.uniform(-0.1, 0.1, (4, 3))
+    poses[2, :3, :3] = np.array([[0, -1, 0], [1, 0, 0], [0, 0, 1]])
+    widths = np.array([0.03, 0.04, 0.05, 0.06], np.float32)
+    refine = REFINE.copy()
+    refine[2] = [0.2, 0.1, 0.97]  # candidate 2, variant 2 (+15 deg)
+    out = select_grasp(poses, widths, np.full(4, 0.5), refine, VALID, spec=SPEC)
+    assert (int(out["index"]), int(out["kind"]), int(out["variant"])) == (2, 2, 2)
+    np.testing.assert_allclose(out["pose"], refined_pose(poses[2], 2, SPEC), atol=1e-6)
+    np.testing.assert_array_equal(out["initial_pose"], poses[2])
+    assert float(out["width"]) == pytest.approx(0.05)
+    out = select_grasp(poses, widths, np.array([0.1, 0.2, 0.3, 0.9]), refine, np.ones(4, bool), spec=SPEC)
+    assert int(out["kind"]) == 1 and np.array_equal(out["pose"], poses[3])
+
+
+# ---------------------------------------------------------------------------------------------
+# The planner end to end.
+
+
+def test_plan_scores_every_object_in_one_call(planner, scene, first_plan):
+    plan = first_plan
+    n_scored = len(plan.scores["eval_prob"])
+    assert plan.n_candidates == n_scored == sum(len(c) for c in plan.candidates) > 0  # all fit in one batch
+    assert plan.scores["refine_prob"].shape == (n_scored, 3)
+    assert {o["label"]: o["candidates"] > 0 for o in plan.objects} == {0: True, 1: True}
+    for i, c in enumerate(plan.candidates):
+        np.testing.assert_array_equal(plan.scores["object_candidate"][plan.scores["object"] == i], np.arange(len(c)))
+    np.testing.assert_array_equal(plan.scores["target"], plan.scores["object"])  # labels 0, 1
+    assert plan.scores["valid"].any()
+    assert set(plan.timing) == {"stage1_s", "stage2_s", "total_s", "compiled"}
+    # A random tiny network: whatever it decided, the plan is consistent with `decide`.
+    index, kind, _, score = decide(plan.scores["eval_prob"], plan.scores["refine_prob"], plan.scores["valid"])
+    assert plan.kind == planner_mod.KIND_NAMES[int(kind)] and plan.score == pytest.approx(float(score))
+    if plan.kind is None:
+        assert plan.reason.startswith("best eval") and plan.pose is None
+    else:
+        assert plan.candidate_index == int(index) and plan.pose.shape == (4, 4)
+    record = json.loads(json.dumps(plan.to_dict()))
+    assert record["n_scored"] == n_scored and record["kind"] == plan.kind
+
+
+def test_more_candidates_than_stage2_takes_keeps_each_objects_best():
+    obj, row = planner_mod.stage2_subset([5, 1, 3], 6)  # round-robin in match order
+    assert list(zip(obj.tolist(), row.tolist())) == [(0, 0), (0, 1), (0, 2), (1, 0), (2, 0), (2, 1)]
+    obj, row = planner_mod.stage2_subset([2, 0, 1], 10)
+    assert obj.tolist() == [0, 0, 2] and row.tolist() == [0, 1, 0]
+    assert len(planner_mod.stage2_subset([], 4)[0]) == 0
+
+
+def test_deterministic_and_never_recompiles(planner, scene, first_plan):
+    from sgjax.stage1 import _pipeline
+
+    sizes = (_pipeline._cache_size(), planner_mod._stage2._cache_size())
+    again = planner.plan(*scene, viewpoint=CAMERA, seed=0)
+    for key in ("eval_prob", "refine_prob", "valid", "object_candidate"):
+        np.testing.assert_array_equal(again.scores[key], first_plan.scores[key])
+    assert (again.kind, again.candidate_index, again.score) == (first_plan.kind, first_plan.candidate_index, first_plan.score)
+    assert not again.timing["compiled"]
+    # Other scene sizes and candidate counts (one object, a sparser table): the same compiled calls.
+    points, labels = scene
+    keep = (labels >= 0) | (np.arange(len(labels)) % 3 > 0)
+    one = planner.plan(points[keep], np.where(labels[keep] == 1, -1, labels[keep]), viewpoint=CAMERA, seed=3)
+    assert one.n_candidates < first_plan.n_candidates and set(one.scores["target"]) == {0}
+    target = planner.plan_target(points, points[labels == 1], viewpoint=CAMERA, seed=0)
+    assert target.n_candidates > 0 and set(target.scores["target"]) <= {0}
+    assert (_pipeline._cache_size(), planner_mod._stage2._cache_size()) == sizes
+
+
+def test_forced_scores_give_each_decision(small_db, scene):
+    """Heads that ignore their input: every valid candidate has the same scores, so the first valid wins."""
+    refine_model = rigged([0.0, -5.0], [-5.0, -5.0, 5.0])  # eval 0.007, refine variant 2: 0.993
+    plan = Planner(refine_model, small_db, CONFIG).plan(*scene, viewpoint=CAMERA)
+    first_valid = int(np.argmax(plan.scores["valid"]))
+    assert (plan.kind, plan.refine_variant, plan.candidate_index) == ("refined", 2, first_valid)
+    assert plan.score == pytest.approx(1 / (1 + np.exp(-5.0)), rel=1e-5)
+    obj, row = plan.scores["object"][first_valid], plan.scores["object_candidate"][first_valid]
+    initial = plan.candidates[obj].poses[row]
+    np.testing.assert_array_equal(plan.initial_pose, initial)
+    np.testing.assert_allclose(plan.pose, refined_pose(initial.astype(np.float32), 2, SPEC), atol=1e-5)
+    assert plan.width == plan.candidates[obj].widths[row] and plan.target == obj
+
+    ablation = Planner(refine_model, small_db, dataclasses.replace(CONFIG, use_refinement=False))
+    none = ablation.plan(*scene, viewpoint=CAMERA)
+    assert none.kind is None and none.pose is None and none.reason == "best eval 0.01 <= 0.7 (refinement disabled)"
+
+    weak = Planner(rigged([0.0, -5.0], [-5.0, -1.0, -5.0]), small_db, CONFIG).plan(*scene, viewpoint=CAMERA)
+    assert weak.kind is None and weak.reason == "best eval 0.01 <= 0.7 and best refine 0.27 <= 0.7"
+
+    strong = Planner(rigged([0.0, 5.0], [5.0, 5.0, 5.0]), small_db, CONFIG).plan(*scene, viewpoint=CAMERA)
+    assert strong.kind == "evaluated" and strong.refine_variant is None and strong.candidate_index == first_valid
+    np.testing.assert_array_equal(strong.pose, initial)
+
+
+def test_small_objects_are_skipped_with_a_reason(planner, scene):
+    points, labels = scene
+    speck = np.random.default_rng(1).normal([0.0, -0.15, 0.01], 0.004, (20, 3))
+    plan = planner.plan(np.r_[points, speck], np.r_[labels, np.full(20, 7)], viewpoint=CAMERA)
+    skipped = [o for o in plan.objects if o["label"] == 7]
+    assert skipped == [{"label": 7, "points": 20, "candidates": 0, "reason": "20 visible points < min_object_points 50"}]
+    assert set(plan.scores["target"]) == {0, 1}
+
+    only = planner.plan(np.r_[points, speck], np.r_[np.full(len(points), -1), np.full(20, 7)])
+    assert only.kind is None and only.reason == "no object with at least 50 visible points (object 7: 20)"
+    assert planner.plan(points, np.full(len(points), -1)).reason.startswith("no object points")
+    target = planner.plan_target(points, speck)
+    assert target.kind is None and "20 visible points" in target.reason
+
+
+def test_no_candidates_gives_the_stage1_reason(planner, scene):
+    points, labels = scene
+    flat = np.c_[np.random.default_rng(2).uniform(-0.2, -0.1, (80, 2)), np.zeros(80)]  # a coplanar patch
+    plan = planner.plan(np.r_[points[labels < 0], flat], np.r_[labels[labels < 0], np.full(80, 3)])
+    assert plan.kind is None and plan.reason.startswith("no candidates: object 3:") and "coplanar" in plan.reason
+    assert plan.n_candidates == 0 and plan.timing["stage2_s"] == 0.0
+    # The support plane reaches Stage 1's filter (v): a "table" at z = 0.5 leaves nothing above it.
+    high = Planner(planner.model, planner.stage1.db, dataclasses.replace(CONFIG, support_plane=(0, 0, 1, -0.5)))
+    plan = high.plan(points, labels, viewpoint=CAMERA)
+    assert plan.kind is None and "below the support plane" in plan.reason and not plan.timing["compiled"]
+
+
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (lambda p, lab: (p[:, :2], lab), r"scene_points must have shape \[N, 3\]"),
+        (lambda p, lab: (np.zeros((0, 3)), lab[:0]), "scene_points is empty"),
+        (lambda p, lab: (np.where(np.arange(len(p))[:, None] == 5, np.nan, p), lab), "NaN or inf"),
+        (lambda p, lab: (p, lab[:-1]), r"labels must have shape \[N\]"),
+        (lambda p, lab: (p, lab + 0.5), "integer object ids"),
+        (lambda p, lab: (p, lab >= 0), "bool target mask"),
+    ],
+)
+def test_bad_inputs_raise_clear_errors(planner, scene, change, message):
+    with pytest.raises(ValueError, match=message):
+        planner.plan(*change(*scene))
+
+
+def test_bad_target_viewpoint_and_masks(planner, scene, small_db):
+    points, labels = scene
+    with pytest.raises(ValueError, match="target_points must have shape"):
+        planner.plan_target(points, points[:, :2])
+    with pytest.raises(ValueError, match="viewpoint must be 3 finite numbers"):
+        planner.plan(points, labels, viewpoint=(0, 1))
+    model = ERNet(TINY, rngs=nnx.Rngs(0))
+    with pytest.raises(ValueError, match="object masks overlap"):
+        planner_mod.plan(points, np.stack([labels >= 0, labels == 1]), model=model, db=small_db, config=CONFIG)
+    with pytest.raises(ValueError, match="target mask must be bool with shape"):
+        planner_mod.plan(points, (labels >= 0)[:-1], model=model, db=small_db, config=CONFIG)
+    with pytest.raises(ValueError, match="n_refinements|refinements"):
+        Planner(model, small_db, PlannerConfig(stage1=dataclasses.replace(CONFIG.stage1, spec=GripperSpec(refine_angles_deg=(0.0,)))))
+
+
+def test_missing_default_model_says_how_to_make_one(tmp_path, monkeypatch):
+    monkeypatch.setattr(planner_mod, "DEFAULT_MODEL_DIR", tmp_path / "ernet_default")
+    with pytest.raises(FileNotFoundError, match="ernet_default.*sgjax train --data DIR --out RUN_DIR.*--model RUN_DIR"):
+        planner_mod.load_default_model()
+
+
+# ---------------------------------------------------------------------------------------------
+# Command line.
+
+
+def save_run_dir(model: ERNet, run_dir) -> None:
+    """A `sgjax train` run directory holding `model` (the trainer's checkpoint layout, no training)."""
+    import orbax.checkpoint as ocp
+
+    from sgjax import ernet
+    from train import trainer
+
+    manager = trainer._checkpoint_manager(str(run_dir))
+    meta = {"epochs_done": 1, "history": [], "model_config": model.config.to_dict()}
+    args = {ernet.PARAMS_ITEM: ocp.args.StandardSave(nnx.state(model)), ernet.META_ITEM: ocp.args.JsonSave(meta)}
+    manager.save(1, args=ocp.args.Composite(**args))
+    manager.wait_until_finished()
+    manager.close()
+
+
+def test_cli_plan(tmp_path, capsys, monkeypatch, small_db):
+    from sgjax.cli import main
+    from sgjax.primitive_db import save_database
+
+    run, db = tmp_path / "run", tmp_path / "db.npz"
+    save_run_dir(rigged([0.0, 5.0], [0.0, 0.0, 0.0]), run)
+    save_database(small_db, db)
+    points, labels = tabletop(n_objects=1, seed=4)  # one object: the Stage-1 shape the tests compiled
+    np.save(tmp_path / "scene.npy", points.astype(np.float32))
+    np.save(tmp_path / "labels.npy", labels.astype(np.int32))
+    np.save(tmp_path / "mask.npy", labels == 0)
+    base = [str(tmp_path / "scene.npy"), "--model", str(run), "--db", str(db), "--viewpoint", *map(str, CAMERA)]
+
+    png = tmp_path / "plan.png"
+    assert main(["plan", *base, "--mask", str(tmp_path / "labels.npy"), "--json", "--png", str(png)]) == 0
+    record = json.loads(capsys.readouterr().out)
+    assert record["kind"] == "evaluated" and record["target"] == 0 and np.array(record["pose"]).shape == (4, 4)
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    compiled = planner_mod._compile_count()
+    assert main(["plan", *base, "--mask", str(tmp_path / "labels.npy"), "--json"]) == 0
+    capsys.readouterr()
+    assert planner_mod._compile_count() == compiled  # a second plan of the same shapes compiles nothing
+
+    assert main(["plan", *base, "--mask", str(tmp_path / "mask.npy")]) == 0
+    out = capsys.readouterr().out
+    assert "evaluated grasp" in out and "stage 1" in out
+
+    np.save(tmp_path / "short.npy", labels[:-3])
+    assert main(["plan", *base, "--mask", str(tmp_path / "short.npy")]) == 2
+    assert "mask" in capsys.readouterr().err
+    assert main(["plan", *base, "--mask", str(tmp_path / "missing.npy")]) == 2
+    assert "no such file" in capsys.readouterr().err
+    monkeypatch.setattr(planner_mod, "DEFAULT_MODEL_DIR", tmp_path / "ernet_default")
+    assert main(["plan", str(tmp_path / "scene.npy"), "--mask", str(tmp_path / "mask.npy"), "--db", str(db)]) == 2
+    assert "sgjax train" in capsys.readouterr().err
