@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from eval import metrics
-from sgjax.files import atomic_write
+from sgjax.files import atomic_write, atomic_write_text
 from sgjax.gripper import GripperSpec
 
 LOGS = "logs"
@@ -54,7 +54,7 @@ def picture_path(out: str | os.PathLike, method: str, setting: str, seed: int, i
 
 def _write_text(path: Path, text: str) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write(path, lambda tmp: Path(tmp).write_text(text))
+    atomic_write_text(path, text)
 
 
 def write_scene_log(path: str | os.PathLike, log: Mapping) -> None:

@@ -341,6 +341,44 @@ class ERNetInputs:
         return jnp.any(self.anchor_mask, axis=-1)
 
 
+def region_inputs(points, mask, widths, key=None, noise_std: float = 0.0, region=None):
+    """The shared front of both networks' input preparation: checked arrays, non-finite rows masked.
+
+    points [M, P, 3], mask [M, P] or None (all), widths [M] -> (points, mask, widths) float32 / bool.
+    With `key`: Gaussian noise of `noise_std` m (points that `region(points, widths)` then rejects are
+    dropped, when given) and a random per-candidate shuffle.
+    """
+    points = jnp.asarray(points, jnp.float32)
+    if points.ndim != 3 or points.shape[-1] != 3:
+        raise ValueError(f"region points must have shape [M, P, 3], got {points.shape}")
+    m, p = points.shape[:2]
+    widths = jnp.asarray(widths, jnp.float32)
+    if widths.shape != (m,):
+        raise ValueError(f"widths must have shape [M] = ({m},), got {widths.shape}")
+    mask = jnp.ones((m, p), bool) if mask is None else jnp.asarray(mask)
+    if mask.shape != (m, p):
+        raise ValueError(f"region mask must have shape {(m, p)}, got {mask.shape}")
+    mask = mask.astype(bool) & jnp.all(jnp.isfinite(points), -1)
+    points = jnp.where(mask[..., None], points, 0.0)
+    if key is not None:
+        noise_key, order_key = jax.random.split(key)
+        if noise_std > 0:
+            points = points + noise_std * jax.random.normal(noise_key, points.shape)
+            if region is not None:
+                mask = mask & region(points, widths)
+        order = jnp.argsort(jax.random.uniform(order_key, (m, p)), axis=-1)
+        points, mask = gather(points, order), jnp.take_along_axis(mask, order, axis=-1)
+    return points, mask, widths
+
+
+def first_points(points: jax.Array, select: jax.Array, n: int) -> tuple[jax.Array, jax.Array]:
+    """The first n rows of points [M, P, 3] where select [M, P] holds -> (crop [M, n, 3], keep [M, n])."""
+    index, count = first_true_indices(select, n)
+    keep = jnp.arange(n) < count[:, None]
+    crop = jnp.where(keep[..., None], gather(points, jnp.minimum(index, points.shape[1] - 1)), 0.0)
+    return crop, keep
+
+
 def prepare_inputs(
     points: jax.Array,
     mask: jax.Array | None,
@@ -360,29 +398,8 @@ def prepare_inputs(
     scene is already in random order). Then the first `n_anchor` of those inside the initial closing
     region become the anchor. Fewer points -> masked padding; non-finite points are dropped.
     """
-    points = jnp.asarray(points, jnp.float32)
-    if points.ndim != 3 or points.shape[-1] != 3:
-        raise ValueError(f"region points must have shape [M, P, 3], got {points.shape}")
-    m, p = points.shape[:2]
-    widths = jnp.asarray(widths, jnp.float32)
-    if widths.shape != (m,):
-        raise ValueError(f"widths must have shape [M] = ({m},), got {widths.shape}")
-    mask = jnp.ones((m, p), bool) if mask is None else jnp.asarray(mask)
-    if mask.shape != (m, p):
-        raise ValueError(f"region mask must have shape {(m, p)}, got {mask.shape}")
-    mask = mask.astype(bool) & jnp.all(jnp.isfinite(points), -1)
-    points = jnp.where(mask[..., None], points, 0.0)
-    if key is not None:
-        noise_key, order_key = jax.random.split(key)
-        if noise_std > 0:
-            points = points + noise_std * jax.random.normal(noise_key, points.shape)
-            mask = mask & in_enlarged_region_local(points, widths, spec)
-        order = jnp.argsort(jax.random.uniform(order_key, (m, p)), axis=-1)
-        points, mask = gather(points, order), jnp.take_along_axis(mask, order, axis=-1)
-
-    index, count = first_true_indices(mask, config.n_points)
-    keep = jnp.arange(config.n_points) < count[:, None]
-    crop = jnp.where(keep[..., None], gather(points, jnp.minimum(index, p - 1)), 0.0)
+    points, mask, widths = region_inputs(points, mask, widths, key, noise_std, lambda q, w: in_enlarged_region_local(q, w, spec))
+    crop, keep = first_points(points, mask, config.n_points)
 
     closing = in_closing_region_local(crop, widths, spec) & keep
     anchor_index, anchor_count = first_true_indices(closing, config.n_anchor)

@@ -52,15 +52,15 @@ from sgjax.ernet import (
     Region,
     anchor_feature,
     evaluation_loss,
+    first_points,
     forward_chunked,
     in_closing_region_local,
+    region_inputs,
 )
 from sgjax.gripper import GripperSpec
 from sgjax.pointnet2 import (
     SharedMLP,
     first_set_bits,
-    first_true_indices,
-    gather,
     interleave,
     pack_interleaved,
 )
@@ -222,28 +222,8 @@ def prepare_inputs(
     `key`: Gaussian noise of `noise_std` m, then a random shuffle; then the first `n_points` points
     inside the closing region of each width are kept (fewer: masked padding).
     """
-    points = jnp.asarray(points, jnp.float32)
-    if points.ndim != 3 or points.shape[-1] != 3:
-        raise ValueError(f"points must have shape [M, P, 3], got {points.shape}")
-    m, p = points.shape[:2]
-    widths = jnp.asarray(widths, jnp.float32)
-    if widths.shape != (m,):
-        raise ValueError(f"widths must have shape [M] = ({m},), got {widths.shape}")
-    mask = jnp.ones((m, p), bool) if mask is None else jnp.asarray(mask)
-    if mask.shape != (m, p):
-        raise ValueError(f"mask must have shape {(m, p)}, got {mask.shape}")
-    mask = mask.astype(bool) & jnp.all(jnp.isfinite(points), -1)
-    points = jnp.where(mask[..., None], points, 0.0)
-    if key is not None:
-        noise_key, order_key = jax.random.split(key)
-        if noise_std > 0:
-            points = points + noise_std * jax.random.normal(noise_key, points.shape)
-        order = jnp.argsort(jax.random.uniform(order_key, (m, p)), axis=-1)
-        points, mask = gather(points, order), jnp.take_along_axis(mask, order, axis=-1)
-    closing = in_closing_region_local(points, widths, spec) & mask
-    index, count = first_true_indices(closing, config.n_points)
-    keep = jnp.arange(config.n_points) < count[:, None]
-    crop = jnp.where(keep[..., None], gather(points, jnp.minimum(index, p - 1)), 0.0)
+    points, mask, widths = region_inputs(points, mask, widths, key, noise_std)
+    crop, keep = first_points(points, in_closing_region_local(points, widths, spec) & mask, config.n_points)
     return PointNetGPDInputs(crop, keep)
 
 
