@@ -226,3 +226,27 @@ def mass_properties(
         com = (volumes[:, None] * np.array([p.center_mass for p in pieces])).sum(0) / volume
     mass = float(np.clip(config.density * volume, *config.mass_range))
     return mass, volume, com
+
+
+def rest_width(mesh: trimesh.Trimesh, probability: float = 0.5, directions: int = 90) -> float:
+    """How wide an object lies on a table, for a gripper closing horizontally (m).
+
+    For each stable resting pose of the convex hull (`trimesh.poses.compute_stable_poses`), the hull's
+    narrowest horizontal width; returns the smallest width w such that the poses no wider than w have
+    at least `probability` of the resting probability. An object whose smallest extent stands vertical
+    when it rests (a tuna can, a box on its largest face) is wide here, however thin it is.
+    """
+    hull = mesh.convex_hull
+    transforms, probs = trimesh.poses.compute_stable_poses(hull, n_samples=1, threshold=0.0)
+    if len(transforms) == 0:  # degenerate hull: fall back to the bounding box
+        return float(np.sort(mesh.extents)[1])
+    angles = np.linspace(0.0, np.pi, directions, endpoint=False)
+    axes = np.stack([np.cos(angles), np.sin(angles)], 1)  # [D, 2] horizontal closing directions
+    widths = []
+    for transform in transforms:
+        along = trimesh.transform_points(hull.vertices, transform)[:, :2] @ axes.T  # [V, D]
+        widths.append(float((along.max(0) - along.min(0)).min()))
+    widths, probs = np.asarray(widths), np.asarray(probs, np.float64) / np.sum(probs)
+    order = np.argsort(widths, kind="stable")
+    covered = np.cumsum(probs[order])
+    return float(widths[order][min(np.searchsorted(covered, probability - 1e-9), len(order) - 1)])

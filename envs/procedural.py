@@ -5,8 +5,8 @@ Three kinds, cycled by index, every one seeded by (seed, index) so a set is repr
   * "blend": a smooth union of 2-3 superquadrics through a common point (L, T, X shapes, knobs);
     usually non-convex.
   * "extrusion": a prism over a random star-shaped profile (lobes, dents); usually non-convex.
-Sizes are drawn so every object fits an 8 cm gripper across its smallest extent (3-7 cm) and is at most
-~20 cm long; meshes are watertight, in metres, centred near the origin (preparation moves the origin to
+Sizes are drawn, then shrunk where needed, so every object fits an 8 cm gripper across its smallest
+extent and where it lies on a table (`envs.meshprep.rest_width` <= MAX_WIDTH) and is at most 20 cm long; meshes are watertight, in metres, centred near the origin (preparation moves the origin to
 the centre of mass).
 """
 
@@ -15,12 +15,13 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
+from envs.meshprep import rest_width
 from sgjax.superquadric import Superquadric, to_mesh
 
 KINDS = ("superquadric", "blend", "extrusion")
-PROCEDURAL_VERSION = 1  # bump when generation changes, so cached meshes are regenerated
+PROCEDURAL_VERSION = 2  # bump when generation changes, so cached meshes are regenerated
 
-MAX_WIDTH = 0.054  # m, smallest extent: + 2 delta (Stage-1 width rule) fits the default 8 cm opening
+MAX_WIDTH = 0.054  # m, smallest extent and rest width: + 2 delta (Stage-1 width rule) fits the 8 cm opening
 MAX_LENGTH = 0.20  # m, largest extent
 _BLEND_SHARPNESS = 10.0  # p of the smooth union r = (sum r_i^p)^(1/p): larger = sharper creases
 
@@ -132,9 +133,10 @@ def procedural_object(index: int, seed: int = 0) -> tuple[str, trimesh.Trimesh]:
     kind = KINDS[index % len(KINDS)]
     rng = np.random.default_rng([seed, index])
     mesh = _GENERATORS[kind](rng)
-    # Guarantee the size rule whatever the draw: shrink (uniformly) until it fits.
+    # Guarantee the size rule whatever the draw: shrink (uniformly) until it fits, lying on the table too
+    # (`rest_width` scales with the mesh).
     extents = np.sort(mesh.extents)
-    shrink = min(1.0, MAX_WIDTH / extents[0], MAX_LENGTH / extents[2])
+    shrink = min(1.0, MAX_WIDTH / extents[0], MAX_WIDTH / rest_width(mesh), MAX_LENGTH / extents[2])
     mesh.apply_scale(shrink)
     return procedural_name(index), mesh
 

@@ -42,7 +42,9 @@ class FilterConfig:
     max_normal_angle_deg: float = 20.0
     observed_angle_deg: float = 60.0
     contact_slab: float = 0.005  # metres
-    collision_margin: float = 0.0  # grow the finger and palm boxes by this (metres)
+    collision_margin: float = 0.0  # grow the finger and palm boxes by this (metres) in (i)
+    # ... and by this in (iv): a neighbour's hidden side lies beyond its observed points.
+    obstacle_margin: float = 0.005
     normal_neighbours: int = 16
     approach_clearance: float = 0.05  # (iv), (v) also test the gripper up to this far back along -approach
     approach_steps: int = 4  # (iv) gripper positions tested along that approach path (1: the grasp only)
@@ -142,7 +144,7 @@ def coarse_filter(
         # path too (backing off by d shows every point d further along +z in the gripper frame).
         for step, d in enumerate(np.linspace(0.0, cfg.approach_clearance, max(cfg.approach_steps, 1))):
             shifted = scene_local.at[..., 2].add(d)
-            scene_in_closing, scene_in_gripper = local_regions(shifted, widths, spec, cfg.collision_margin)
+            scene_in_closing, scene_in_gripper = local_regions(shifted, widths, spec, cfg.obstacle_margin)
             # At the grasp, an obstacle between the fingers would be squeezed too (or the fingertips
             # reach the table): the scene passed here holds no point of the target itself.
             hit = scene_in_gripper | scene_in_closing if step == 0 else scene_in_gripper

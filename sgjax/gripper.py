@@ -323,6 +323,54 @@ def local_regions(
     return closing, finger | palm
 
 
+def finger_stops(local, spec: GripperSpec, valid=None, xp=jnp):
+    """The paper's width rule in the gripper frame: a finger face sweeping along x from fully open stops
+    where its Euclidean distance to some point reaches delta (`spec.contact_threshold`).
+
+    local [..., S, 3] gripper-frame points, valid [..., S] or None; xp: the array module (jnp, or np for
+    the host-side database build). Returns (left, right) [...]: how far from the origin the left face
+    (at -x) and the right face (at +x) stop; -inf where no point comes within delta of that face. Closing
+    symmetrically, the first face to stop sets the width: 2 * max(left, right).
+    """
+    x, y, z = local[..., 0], local[..., 1], local[..., 2]
+    delta = spec.contact_threshold
+    dy = xp.maximum(xp.abs(y) - 0.5 * spec.finger_width, 0.0)
+    dz = xp.maximum(xp.maximum(-z, z - spec.finger_length), 0.0)
+    lateral2 = dy**2 + dz**2
+    near = lateral2 < delta**2
+    if valid is not None:
+        near = near & valid
+    dx = xp.sqrt(xp.maximum(delta**2 - lateral2, 0.0))
+    left = xp.max(xp.where(near, dx - x, -xp.inf), axis=-1)
+    right = xp.max(xp.where(near, x + dx, -xp.inf), axis=-1)
+    return left, right
+
+
+def adapt_to_cloud(local, valid, poses, widths, spec: GripperSpec, max_shift: float = 0.005):
+    """Transferred grasps adapted to the observed object by the paper's width rule (`finger_stops`).
+
+    A matched primitive of another size or a slightly shifted fit leaves the fingers off-centre: each
+    grasp moves along its closing axis (by at most max_shift) to centre the observed points between the
+    faces' stops, and opens to the width the rule gives there, never below the transferred width (which
+    carries the fitted superquadric's estimate of the hidden side), capped at the maximum opening.
+    Grasps whose observed points would need more than the maximum opening, or with no observed point
+    near a finger, are left as transferred: filters (i) and (ii) judge them.
+
+    local [M, N, 3] object points in each grasp frame, valid [N], poses [M, 4, 4], widths [M]
+    -> (poses [M, 4, 4], widths [M]).
+    """
+    left, right = finger_stops(local, spec, valid[None, :])
+    # Only where the observed points fit between the open fingers; elsewhere filter (i) or (ii) decides.
+    seen = jnp.isfinite(left) & jnp.isfinite(right)
+    shift = jnp.where(seen, jnp.clip(0.5 * (right - left), -max_shift, max_shift), 0.0)
+    observed = 2.0 * jnp.maximum(left + shift, right - shift)
+    fits = seen & (observed <= spec.max_opening)
+    shift = jnp.where(fits, shift, 0.0)
+    widths = jnp.where(fits, jnp.minimum(jnp.maximum(widths, observed), spec.max_opening), widths)
+    poses = poses.at[:, :3, 3].add(shift[:, None] * poses[:, :3, 0])
+    return poses, widths
+
+
 def points_in_box(points: jax.Array, box: Box, margin: float = 0.0) -> jax.Array:
     """Whether points[..., N, 3] lie in the closed boxes [...] grown by `margin` -> bool[..., N]."""
     points = _points(points)

@@ -24,7 +24,7 @@ import dataclasses
 import numpy as np
 import trimesh
 
-from sgjax.gripper import GripperSpec
+from sgjax.gripper import GripperSpec, finger_stops
 
 FAMILIES = ("cuboid", "cylinder", "frustum", "elliptical_cylinder")
 _SECTIONS = 64  # polygon sides of round primitives: < 0.2 mm from the true circle at r = 0.1 m
@@ -118,18 +118,7 @@ def closing_widths(points: np.ndarray, poses: np.ndarray, spec: GripperSpec) -> 
     Euclidean distance to some surface point reaches delta. Returns widths [T]; NaN where no surface
     comes within delta of a finger (a grasp of air) or where the stop lies beyond the maximum opening.
     """
-    local = _local(points, poses)
-    x, y, z = local[..., 0], local[..., 1], local[..., 2]
-    delta = spec.contact_threshold
-    dy = np.maximum(np.abs(y) - 0.5 * spec.finger_width, 0.0)
-    dz = np.maximum(np.maximum(-z, z - spec.finger_length), 0.0)
-    lateral2 = dy**2 + dz**2
-    near = lateral2 < delta**2
-    dx = np.sqrt(np.maximum(delta**2 - lateral2, 0.0))
-    left_stop = np.where(near, x - dx, np.inf).min(-1)  # left face moves from -inf towards +x
-    right_stop = np.where(near, x + dx, -np.inf).max(-1)
-    half = np.maximum(-left_stop, right_stop)
-    width = 2.0 * half
+    width = 2.0 * np.maximum(*finger_stops(_local(points, poses), spec, xp=np))
     ok = np.isfinite(width) & (width <= spec.max_opening) & (width > 0)
     return np.where(ok, width, np.nan)
 

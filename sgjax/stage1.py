@@ -1,7 +1,8 @@
 """Stage 1 of SuperGrasp: single-view cloud -> grasp candidates (paper Sec. IV-B).
 
 fit a superquadric (EMS) -> match it against the primitive database (top K1 by d_shape, top K2 by s)
--> transfer the matched primitives' template grasps (T = T_sq^q (T_sq^c)^-1) -> coarse filtering.
+-> transfer the matched primitives' template grasps (T = T_sq^q (T_sq^c)^-1) -> widths adapted to the
+observed cloud by the paper's own width rule (`Stage1Config.adapt_width`) -> coarse filtering.
 
 `Stage1` holds the database on the device and one jit-compiled pipeline, batched over objects with
 fixed shapes (clouds padded to `max_object_points`, scene crops to `max_scene_points`, candidates
@@ -31,7 +32,7 @@ from sgjax.coarse_filter import (
     removal_counts,
 )
 from sgjax.ems import EMSConfig, FitResult, _fit_one
-from sgjax.gripper import GripperSpec
+from sgjax.gripper import GripperSpec, adapt_to_cloud, to_gripper_frame
 from sgjax.matching import MatchConfig, MatchDB, match, transfer_grasps
 from sgjax.primitive_db import DBConfig, PrimitiveDB, load_database
 
@@ -49,6 +50,18 @@ class Stage1Config:
     max_candidates: int = 1024  # transferred slots kept (in match order) for filtering
     scene_margin: float = 0.12  # scene points farther than this from the object's box cannot touch the gripper
     target_exclusion: float = 0.002  # scene points this close to an object point are the object itself
+    # Re-apply the paper's width rule (delta from the surface) to the observed cloud after transfer,
+    # re-centring each grasp on it by at most max_recentre: a matched primitive of another size would
+    # otherwise close a finger into the object (`sgjax.gripper.adapt_to_cloud`).
+    adapt_width: bool = True
+    max_recentre: float = 0.005
+    # Objects rest on the support plane, which hides their bottom: with a plane given, EMS also fits the
+    # observed points projected onto it (the object's footprint), so a single view seen from above does
+    # not collapse into a flat superquadric. The filters still see only the observed points.
+    footprint: bool = True
+    # Scene points this close above the support plane are the table: filter (v) tests it exactly, so
+    # they leave the obstacle cloud, whose test grows the gripper by `filter.obstacle_margin`.
+    table_band: float = 0.005
 
 
 @dataclasses.dataclass
@@ -121,13 +134,25 @@ def _reason(counts: dict, cfg: Stage1Config) -> str:
     return f"all {counts['transferred']} transferred candidates were removed: " + ", ".join(parts)
 
 
+def with_footprint(points: jax.Array, mask: jax.Array, plane: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Clouds plus their projections onto the support plane: points [B, N, 3], mask [B, N], plane [B, 4]
+    (n, d; NO_PLANE adds nothing; points below the plane add nothing) -> points [B, 2N, 3], mask [B, 2N]."""
+    normal, offset = plane[:, None, :3], plane[:, None, 3:]
+    height = jnp.sum(points * normal, -1, keepdims=True) + offset  # [B, N, 1]
+    projected = points - height * normal
+    # Only points in the plane's free space rest on it (NO_PLANE has a zero normal: nothing added).
+    above = (height[..., 0] > 0.0) & jnp.any(normal != 0.0, -1)
+    return jnp.concatenate([points, projected], 1), jnp.concatenate([mask, mask & above], 1)
+
+
 @functools.partial(jax.jit, static_argnames=("cfg", "has_scene", "has_view"))
 def _pipeline(obj, obj_mask, scene, scene_mask, viewpoint, plane, scale, db: MatchDB, cfg: Stage1Config, has_scene: bool,
               has_view: bool = True):
     """Fixed-shape Stage 1 over B objects. obj [B, N, 3], scene [B, S, 3], viewpoint [B, 3], plane [B, 4],
     scale [B] (observed points per kept object point)."""
     # A known viewpoint tells EMS which of the fitted surface the camera should have seen.
-    fit = jax.vmap(lambda p, m, v: _fit_one(p, m, cfg.ems, v if has_view else None))(obj, obj_mask, viewpoint)
+    ems_obj, ems_mask = with_footprint(obj, obj_mask, plane) if cfg.footprint else (obj, obj_mask)
+    fit = jax.vmap(lambda p, m, v: _fit_one(p, m, cfg.ems, v if has_view else None))(ems_obj, ems_mask, viewpoint)
     result = match(fit.scale, fit.epsilon, db, cfg.match)
     poses, widths, mask = transfer_grasps(fit.superquadric, result, db)  # [B, K2, G, ...]
     b, k2, g = mask.shape
@@ -138,6 +163,10 @@ def _pipeline(obj, obj_mask, scene, scene_mask, viewpoint, plane, scale, db: Mat
     take = lambda x: jnp.take_along_axis(x, order.reshape(order.shape + (1,) * (x.ndim - 2)), 1)
     poses, widths, valid = take(poses), take(widths), take(mask)
     rank = order // g
+    if cfg.adapt_width:
+        local = jax.vmap(to_gripper_frame)(obj, poses)  # [B, M, N, 3]
+        adapt = lambda lc, om, p, w: adapt_to_cloud(lc, om, p, w, cfg.spec, cfg.max_recentre)
+        poses, widths = jax.vmap(adapt)(local, obj_mask, poses, widths)
     normals = estimate_normals(obj, obj_mask, viewpoint, cfg.filter.normal_neighbours)
 
     def one(p, w, v, o, om, nrm, s, sm, pl, sc):
@@ -167,15 +196,17 @@ class Stage1:
         self.config = config
         self.match_db = MatchDB.from_db(self.db, config.match)
 
-    def _crop_scene(self, scene: np.ndarray, obj: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    def _crop_scene(self, scene: np.ndarray, obj: np.ndarray, seed: int, plane: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The obstacles near the object: scene points within scene_margin of its box that are not the
-        object's own (farther than target_exclusion from every object point), subsampled and padded
-        to max_scene_points."""
+        object's own (farther than target_exclusion from every object point) nor the table (within
+        table_band above the support plane [4]), subsampled and padded to max_scene_points."""
         from scipy.spatial import cKDTree
 
         cfg = self.config
         lo, hi = obj.min(0) - cfg.scene_margin, obj.max(0) + cfg.scene_margin
         near = scene[np.all((scene >= lo) & (scene <= hi), axis=1)]
+        if np.any(plane[:3] != 0.0):
+            near = near[near @ plane[:3] + plane[3] >= cfg.table_band]
         if len(near):
             own = cKDTree(obj).query(near, distance_upper_bound=cfg.target_exclusion)[0] <= cfg.target_exclusion
             near = near[~own]
@@ -206,6 +237,7 @@ class Stage1:
                 clouds.append(np.zeros((1, 3)))  # fitted as invalid, reported with the message above
         obj, obj_mask = pointcloud.pad_clouds(clouds, cfg.max_object_points, seed, n_points=cfg.max_object_points)
         b = len(clouds)
+        plane = _planes(support_plane, b)
         has_scene = scenes is not None and any(s is not None for s in scenes)
         scene = np.zeros((b, cfg.max_scene_points if has_scene else 1, 3), np.float32)
         scene_mask = np.zeros(scene.shape[:2], bool)
@@ -215,9 +247,8 @@ class Stage1:
             for i, s in enumerate(scenes):
                 if s is not None:
                     s = pointcloud.as_cloud(s, f"scene cloud {i}")
-                    scene[i], scene_mask[i] = self._crop_scene(s[np.all(np.isfinite(s), 1)], clouds[i], seed + i)
+                    scene[i], scene_mask[i] = self._crop_scene(s[np.all(np.isfinite(s), 1)], clouds[i], seed + i, plane[i])
         view = np.zeros((b, 3), np.float32) if viewpoints is None else np.asarray(viewpoints, np.float32).reshape(b, 3)
-        plane = _planes(support_plane, b)
         # Filter (ii) counts the observed points between the fingers, not the subsample's.
         scale = np.array([len(c) for c in clouds], np.float32) / np.maximum(obj_mask.sum(1), 1)
         out = _pipeline(

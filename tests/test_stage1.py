@@ -329,3 +329,64 @@ def test_empty_result_explains_which_filter_removed_what(stage):
 def test_bad_object_clouds_raise_clear_errors(stage, cloud, message):
     with pytest.raises(CloudError, match=message):
         stage(cloud)
+
+
+# ---------------------------------------------------------------------------------------------
+# Adapting transferred grasps to the observed cloud; the support plane's footprint and table band.
+
+
+def test_adapt_to_cloud_recentres_and_applies_the_width_rule():
+    from sgjax.gripper import adapt_to_cloud, to_gripper_frame
+
+    cloud = _box_cloud(half=(0.015, 0.04, 0.03))  # 3 cm across x, top face at z = 0.03
+    down, across = np.array([0, 0, -1.0]), np.array([1.0, 0, 0])
+    delta = SPEC.contact_threshold
+    poses = np.stack([
+        grasp_frame(down, across, np.array([0.003, 0, 0.04])),  # 3 mm off-centre, too narrow
+        grasp_frame(down, across, np.array([0.0, 0, 0.04])),  # centred, wider than needed
+        grasp_frame(down, across, np.array([0.009, 0, 0.04])),  # 9 mm off: moved by max_shift only
+        grasp_frame(down, across, np.array([0.3, 0, 0.04])),  # the box is beyond the opening: unchanged
+    ]).astype(np.float32)
+    widths = jnp.asarray([0.04, 0.07, 0.04, 0.05], jnp.float32)
+    local = to_gripper_frame(jnp.asarray(cloud), jnp.asarray(poses))
+    new_poses, new_widths = (np.asarray(a) for a in adapt_to_cloud(
+        local, jnp.ones(len(cloud), bool), jnp.asarray(poses), widths, SPEC, max_shift=0.005))
+    np.testing.assert_allclose(new_poses[:, 0, 3], [0.0, 0.0, 0.004, 0.3], atol=2e-4)
+    np.testing.assert_allclose(new_poses[:, :3, :3], poses[:, :3, :3])
+    # Centred: the paper's rule gives the box's 3 cm plus delta on each side; never below the transfer.
+    assert new_widths[0] == pytest.approx(0.03 + 2 * delta, abs=5e-4)
+    assert new_widths[1] == pytest.approx(0.07, abs=1e-6)
+    # 4 mm off-centre after the capped shift: the near finger stops first, 8 mm wider.
+    assert new_widths[2] == pytest.approx(0.03 + 2 * delta + 0.008, abs=5e-4)
+    assert new_widths[3] == pytest.approx(0.05, abs=1e-6)
+
+
+def test_footprint_on_the_support_plane_keeps_a_top_view_fit_tall(small_db):
+    """Seen from straight above only the top face shows; the table says the box reaches down to it."""
+    dims = (0.06, 0.04, 0.05)
+    mesh = primitive_mesh(Primitive("cuboid", dims))
+    mesh.apply_translation([0.1, 0.0, 0.025])
+    pts, face = trimesh.sample.sample_surface(mesh, 6000, seed=0)
+    above = np.array([0.1, 0.0, 0.7])
+    # The top face and the upper 5 mm of the sides (neighbours hide the rest, as in clutter).
+    top = pts[(mesh.face_normals[face][:, 2] > 0.9) | (pts[:, 2] > 0.045)][:800]
+    table = (0.0, 0.0, 1.0, 0.0)
+    heights = {}
+    for footprint in (True, False):
+        stage1 = Stage1(small_db, Stage1Config(footprint=footprint))
+        fit = stage1(top, viewpoint=above, support_plane=table).superquadric
+        rotation, scale = np.asarray(fit.rotation), np.asarray(fit.scale)
+        heights[footprint] = 2 * float(np.sum(np.abs(rotation[2, :]) * scale))  # vertical extent
+    assert heights[True] == pytest.approx(dims[2], rel=0.25)
+    assert heights[False] < 0.5 * dims[2]
+
+
+def test_table_points_leave_the_obstacles_when_the_plane_is_given(stage):
+    cloud, _ = single_view(Primitive("cuboid", (0.09, 0.054, 0.027)))
+    xs, ys = np.meshgrid(np.linspace(-0.2, 0.4, 150), np.linspace(-0.3, 0.3, 150))
+    table = np.stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)], 1)
+    planed = stage(cloud, np.concatenate([table, cloud]), viewpoint=CAMERA, support_plane=(0.0, 0.0, 1.0, 0.0))
+    # The table is judged by filter (v) alone, with its clearance; no table point is an obstacle.
+    assert planed.counts.get("collision_scene", 0) == 0 and planed.counts["below_support"] > 0
+    tips = planed.poses[:, :3, 3] + SPEC.finger_length * planed.poses[:, :3, 2]
+    assert len(planed) > 0 and np.all(tips[:, 2] >= FilterConfig().support_clearance - 1e-4)
