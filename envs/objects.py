@@ -410,13 +410,14 @@ def _rest_widths(sources: Sequence[MeshSource]) -> dict[str, float]:
 
 def ycb_graspable(spec: GripperSpec | None = None) -> list[MeshSource]:
     """The YCB meshes that pass `fits_gripper` (measured on the raw meshes, before preparation)."""
-    sized = []
+    sized = []  # (source, extents) passing the bounding-box part; the rest width only for those (~1 s each)
     for source in ycb_meshes():
         stat = os.stat(source.path)
-        if fits_gripper(_raw_extents(source.path, stat.st_size, stat.st_mtime), spec):
-            sized.append(source)
-    rest = _rest_widths(sized)
-    return [s for s in sized if fits_gripper((0.0, 0.0, 0.1), spec, rest=rest[s.name])]
+        extents = _raw_extents(source.path, stat.st_size, stat.st_mtime)
+        if fits_gripper(extents, spec):
+            sized.append((source, extents))
+    rest = _rest_widths([s for s, _ in sized])
+    return [s for s, extents in sized if fits_gripper(extents, spec, rest=rest[s.name])]
 
 
 def split_seen_unseen(sources: Sequence[MeshSource]) -> tuple[list[MeshSource], list[MeshSource]]:
