@@ -1,7 +1,7 @@
 """Simulation speed: scenes, the depth camera and grasp trials on the C engine and MJX (by hand).
 
     python benchmarks/bench_sim.py [--trials 128] [--nthread 2] [--mjx-trials 8] [--mjx-objects 2]
-                                   [--skip-cpu | --skip-mjx]
+                                   [--objects tiny|seen|...] [--skip-cpu | --skip-mjx]
 
 Trials: top-down grasps of every object of a tiny-set scene (`envs.simple_grasps`), jittered by a few
 millimetres and degrees so that they mix successes, collisions and drops, repeated up to --trials.
@@ -22,7 +22,7 @@ from scipy.spatial.transform import Rotation
 
 from envs import camera, simple_grasps, trial
 from envs import scene as scene_lib
-from envs.objects import tiny_object_set
+from envs.objects import load_object_set, tiny_object_set
 
 
 def candidates(scene: scene_lib.Scene, n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -57,10 +57,13 @@ def main() -> None:
     parser.add_argument("--mjx-objects", type=int, default=2, help="cubes in the MJX reference scene")
     parser.add_argument("--skip-mjx", action="store_true")
     parser.add_argument("--skip-cpu", action="store_true", help="only the MJX row")
+    parser.add_argument(
+        "--objects", default="tiny", help="object set of the C-engine scenes (tiny: convex shapes; seen: YCB + procedural, prepared on first use)"
+    )
     args = parser.parse_args()
-    objects = tiny_object_set()
+    objects = tiny_object_set() if args.objects == "tiny" else load_object_set(args.objects)
     steps = sum(trial.TrialConfig().phase_steps(0.002))
-    print(f"{os.cpu_count()} CPUs, {args.nthread} engine threads; trial = {steps} steps of 2 ms\n")
+    print(f"{os.cpu_count()} CPUs, {args.nthread} engine threads; trial = {steps} steps of 2 ms; objects: {args.objects}\n")
 
     if not args.skip_cpu:
         cpu_tables(objects, args, steps)

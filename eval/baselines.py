@@ -42,7 +42,7 @@ from flax import nnx
 from eval import gpd
 from eval.methods import Decision
 from eval.supergrasp import table_plane
-from sgjax import gripper, pointcloud
+from sgjax import gripper, planner, pointcloud
 from sgjax.gripper import GripperSpec
 from sgjax.stage1 import Stage1Config
 
@@ -79,9 +79,7 @@ class BaselineConfig:
             raise ValueError("max_candidates, max_scene_points and stage1_batch_sizes must be >= 1")
         if self.min_object_points < pointcloud.MIN_POINTS:
             raise ValueError(f"min_object_points must be >= {pointcloud.MIN_POINTS}")
-        for name in ("eval_threshold", "refine_threshold"):
-            if not 0.0 <= getattr(self, name) < 1.0:
-                raise ValueError(f"{name} must be in [0, 1), got {getattr(self, name)}")
+        planner.check_thresholds(self)
 
     @property
     def spec(self) -> GripperSpec:

@@ -47,7 +47,8 @@ import numpy as np
 
 from eval.methods import Decision
 from sgjax.coarse_filter import estimate_normals
-from sgjax.gripper import GripperSpec
+from sgjax.gripper import GripperSpec, local_regions
+from sgjax.rotations import points_to_frame
 
 DOWN = np.array([0.0, 0.0, -1.0], np.float32)
 
@@ -128,14 +129,7 @@ def prepare_cloud(
 def swept_hits(local: jax.Array, width: jax.Array, spec: GripperSpec, sweep: float) -> jax.Array:
     """Gripper-frame points [..., N, 3] inside a finger or the palm of an open hand of `width` [...],
     swept back by `sweep` along -z (the approach path) -> bool [..., N]."""
-    x, y, z = jnp.abs(local[..., 0]), jnp.abs(local[..., 1]), local[..., 2]
-    half_w = 0.5 * width[..., None]
-    t = spec.finger_thickness
-    finger = (jnp.abs(x - half_w - 0.5 * t) <= 0.5 * t) & (y <= 0.5 * spec.finger_width)
-    finger &= (z >= -sweep) & (z <= spec.finger_length)
-    px, py, pz = spec.palm_size
-    palm = (x <= 0.5 * px) & (y <= 0.5 * py) & (z >= -pz - sweep) & (z <= 0.0)
-    return finger | palm
+    return local_regions(local, width, spec, 0.0, sweep)[1]
 
 
 def _lowest_z(rotation: jax.Array, origin: jax.Array, width: jax.Array, spec: GripperSpec) -> jax.Array:
@@ -199,7 +193,7 @@ def candidates(points, mask, viewpoint, table_z, key, config: GPDConfig) -> dict
     approach_ok = jnp.einsum("kaj,j->ka", z, down) >= np.cos(limit) - 1e-6
 
     # Gripper-frame points with the origin at p (depth 0, offset 0): local = R^T (q - p).
-    local0 = jnp.einsum("nj,kajc->kanc", points, rotation) - jnp.einsum("kj,kajc->kac", p, rotation)[:, :, None]
+    local0 = points_to_frame(points, rotation, jnp.broadcast_to(p[:, None], rotation.shape[:-1]))
     open_width = jnp.full(z.shape[:2], spec.max_opening, jnp.float32)
     depths = np.linspace(config.min_depth, spec.finger_length - config.tip_margin, config.depth_steps)
     offsets = lateral_offsets(config)
@@ -230,7 +224,7 @@ def evaluate(poses, valid, points, mask, normals, table_z, config: GPDConfig) ->
     """
     spec = config.spec
     rotation, origin = poses[:, :3, :3], poses[:, :3, 3]
-    local = jnp.einsum("nj,mjc->mnc", points, rotation) - jnp.einsum("mj,mjc->mc", origin, rotation)[:, None]
+    local = points_to_frame(points, rotation, origin)
     x, y, z = local[..., 0], local[..., 1], local[..., 2]
     in_y = jnp.abs(y) <= 0.5 * spec.finger_width
     in_z = (z >= 0.0) & (z <= spec.finger_length)

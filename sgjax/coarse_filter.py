@@ -47,7 +47,9 @@ class FilterConfig:
     obstacle_margin: float = 0.005
     normal_neighbours: int = 16
     approach_clearance: float = 0.05  # (iv), (v) also test the gripper up to this far back along -approach
-    approach_steps: int = 4  # (iv) gripper positions tested along that approach path (1: the grasp only)
+    # (iv) tests the hand swept continuously along that path; 1: the grasp only. (Any value > 1 gives the
+    # continuous sweep: the union of >= 2 evenly spaced hand positions, each deeper than the spacing.)
+    approach_steps: int = 4
     support_clearance: float = 0.003  # (v) every gripper box corner at least this far above the plane
 
 
@@ -119,6 +121,7 @@ def coarse_filter(
     cfg: FilterConfig = FilterConfig(),
     support_plane: jax.Array | None = None,
     point_scale: jax.Array | float = 1.0,
+    object_local: jax.Array | None = None,
 ) -> FilterResult:
     """Apply filters (i)-(v) to candidates of one object.
 
@@ -127,8 +130,9 @@ def coarse_filter(
     support_plane [4] (n, d) with free space n . x + d > 0 and |n| = 1, or None (NO_PLANE);
     point_scale: observed points per given object point (> 1 when the cloud was subsampled), so that
     (ii) counts the observed cloud's points between the fingers as the paper does.
+    object_local: the object points already in each grasp frame [M, N, 3], if the caller has them.
     """
-    local = to_gripper_frame(object_points, poses)  # [M, N, 3]
+    local = to_gripper_frame(object_points, poses) if object_local is None else object_local  # [M, N, 3]
     in_closing, in_gripper = local_regions(local, widths, spec, cfg.collision_margin)
     in_closing &= object_mask
     collision_object = jnp.any(in_gripper & object_mask, -1)
@@ -139,16 +143,12 @@ def coarse_filter(
         collision_scene = jnp.zeros_like(collision_object)
     else:
         scene_local = to_gripper_frame(scene_points, poses)
-        collision_scene = jnp.zeros_like(collision_object)
-        # The executed motion comes straight in along the approach axis: test the gripper along that
-        # path too (backing off by d shows every point d further along +z in the gripper frame).
-        for step, d in enumerate(np.linspace(0.0, cfg.approach_clearance, max(cfg.approach_steps, 1))):
-            shifted = scene_local.at[..., 2].add(d)
-            scene_in_closing, scene_in_gripper = local_regions(shifted, widths, spec, cfg.obstacle_margin)
-            # At the grasp, an obstacle between the fingers would be squeezed too (or the fingertips
-            # reach the table): the scene passed here holds no point of the target itself.
-            hit = scene_in_gripper | scene_in_closing if step == 0 else scene_in_gripper
-            collision_scene |= jnp.any(hit & scene_mask, -1)
+        # The executed motion comes straight in along the approach axis: the fingers and palm are swept
+        # back over approach_clearance (every hand position on that path). At the grasp, an obstacle
+        # between the fingers would be squeezed too (the scene holds no point of the target itself).
+        sweep = cfg.approach_clearance if cfg.approach_steps > 1 else 0.0
+        in_closing, in_hand = local_regions(scene_local, widths, spec, cfg.obstacle_margin, sweep)
+        collision_scene = jnp.any((in_closing | in_hand) & scene_mask, -1)
     below = below_plane(poses, widths, support_plane, spec, cfg)
     keep = valid & ~collision_object & ~too_few & ~normal_bad & ~collision_scene & ~below
     failed = [collision_object, too_few, normal_bad, collision_scene, below]

@@ -30,6 +30,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import os
+from collections.abc import Callable
 from typing import Any
 
 import jax
@@ -51,6 +52,7 @@ from sgjax.pointnet2 import (
     interleave,
     pack_interleaved,
 )
+from sgjax.rotations import points_to_frame
 
 # ---------------------------------------------------------------------------------------------
 # Configuration.
@@ -262,7 +264,7 @@ class Region:
     count: jax.Array
 
 
-def _check_candidates(poses, widths) -> tuple[jax.Array, jax.Array]:
+def check_candidates(poses, widths) -> tuple[jax.Array, jax.Array]:
     poses = jnp.asarray(poses)
     if poses.ndim != 3 or poses.shape[-2:] != (4, 4):
         raise ValueError(f"poses must have shape [M, 4, 4], got {poses.shape}")
@@ -290,7 +292,7 @@ def crop_regions(
     scene = jnp.asarray(scene, jnp.float32)
     if scene.ndim != 2 or scene.shape[-1] != 3:
         raise ValueError(f"scene must have shape [N, 3], got {scene.shape}")
-    poses, widths = _check_candidates(poses, widths)
+    poses, widths = check_candidates(poses, widths)
     valid = jnp.all(jnp.isfinite(scene), -1)
     if scene_mask is not None:
         scene_mask = jnp.asarray(scene_mask)
@@ -313,7 +315,7 @@ def crop_regions(
     index, count = first_set_bits(words, scene.shape[0], n_points)
     mask = jnp.arange(n_points) < count[:, None]
     picked = jnp.where(valid[:, None], scene, 0.0)[jnp.minimum(index, scene.shape[0] - 1)]  # [M, P, 3]
-    points = jnp.einsum("mpi,mij->mpj", picked - translation[:, None, :], rotation)
+    points = points_to_frame(picked, rotation, translation)
     return Region(jnp.where(mask[..., None], points, 0.0), mask, count)
 
 
@@ -559,6 +561,42 @@ def score_regions(
     return _scores(model, inputs, valid, jnp.sum(inputs.mask, -1).astype(jnp.int32))
 
 
+@dataclasses.dataclass(frozen=True)
+class SceneCandidates:
+    """A checked scene and candidate set, ready to crop (`scene_candidates`).
+
+    scene [N, 3] shuffled, scene_mask [N] or None (shuffled alike); poses [M, 4, 4] and widths [M] with
+    invalid candidates replaced by the identity and 0 so crops stay finite; ok [M] marks valid ones.
+    """
+
+    scene: jax.Array
+    scene_mask: jax.Array | None
+    poses: jax.Array
+    widths: jax.Array
+    ok: jax.Array
+
+
+def scene_candidates(scene, poses, widths, scene_mask, spec: GripperSpec, key: jax.Array | None) -> SceneCandidates:
+    """Check and prepare one scene [N, 3] and M candidates for cropping (shared by every scorer).
+
+    Raises ValueError for wrong shapes. The scene is shuffled with `key` (None: a fixed key, so
+    results are deterministic) so that each crop is a uniform sample of its region. A candidate is ok
+    when its pose and width are finite and the width lies in [0, max_opening].
+    """
+    scene = jnp.asarray(scene, jnp.float32)
+    if scene.ndim != 2 or scene.shape[-1] != 3:
+        raise ValueError(f"scene must have shape [N, 3], got {scene.shape}")
+    poses, widths = check_candidates(poses, widths)
+    if scene_mask is not None and jnp.shape(scene_mask) != scene.shape[:1]:
+        raise ValueError(f"scene_mask must have shape {scene.shape[:1]}, got {jnp.shape(scene_mask)}")
+    key = jax.random.key(0) if key is None else key
+    order = jax.random.permutation(key, scene.shape[0])
+    scene_mask = None if scene_mask is None else jnp.asarray(scene_mask)[order]
+    ok = jnp.all(jnp.isfinite(poses), axis=(-2, -1)) & jnp.isfinite(widths) & gripper.width_in_range(widths, spec)
+    safe_poses = jnp.where(ok[:, None, None], poses, jnp.eye(4))
+    return SceneCandidates(scene[order], scene_mask, safe_poses, jnp.where(ok, widths, 0.0), ok)
+
+
 @functools.partial(jax.jit, static_argnames=("graphdef", "spec"))
 def score(
     graphdef: nnx.GraphDef,
@@ -583,21 +621,10 @@ def score(
     model = nnx.merge(graphdef, state)
     config: ERNetConfig = model.config
     _check_config(config, spec)
-    scene = jnp.asarray(scene, jnp.float32)
-    if scene.ndim != 2 or scene.shape[-1] != 3:
-        raise ValueError(f"scene must have shape [N, 3], got {scene.shape}")
-    poses, widths = _check_candidates(poses, widths)
-    key = jax.random.key(0) if key is None else key
-    if scene_mask is not None and jnp.shape(scene_mask) != scene.shape[:1]:
-        raise ValueError(f"scene_mask must have shape {scene.shape[:1]}, got {jnp.shape(scene_mask)}")
-    order = jax.random.permutation(key, scene.shape[0])
-    scene_mask = None if scene_mask is None else jnp.asarray(scene_mask)[order]
-    ok = jnp.all(jnp.isfinite(poses), axis=(-2, -1)) & jnp.isfinite(widths) & gripper.width_in_range(widths, spec)
-    safe_poses = jnp.where(ok[:, None, None], poses, jnp.eye(4))
-    safe_widths = jnp.where(ok, widths, 0.0)
-    region = crop_regions(scene[order], safe_poses, safe_widths, spec, config.n_points, scene_mask)
-    inputs = prepare_inputs(region.points, region.mask, safe_widths, spec, config)
-    return _scores(model, inputs, ok, region.count)
+    c = scene_candidates(scene, poses, widths, scene_mask, spec, key)
+    region = crop_regions(c.scene, c.poses, c.widths, spec, config.n_points, c.scene_mask)
+    inputs = prepare_inputs(region.points, region.mask, c.widths, spec, config)
+    return _scores(model, inputs, c.ok, region.count)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -612,26 +639,42 @@ def abstract_model(config: ERNetConfig) -> ERNet:
     return nnx.eval_shape(lambda: ERNet(config, rngs=nnx.Rngs(0)))
 
 
+def restore_run(
+    run_dir: str | os.PathLike,
+    epoch: int | None,
+    abstract_from_meta: Callable[[dict[str, Any]], nnx.Module],
+    missing_hint: str = "",
+) -> tuple[nnx.Module, dict[str, Any]]:
+    """Restore a network from a run directory's orbax checkpoints -> (model, meta).
+
+    Shared by every network the trainer writes (E-RNet, PointNetGPD). epoch: which epoch (None: the
+    latest). `abstract_from_meta(meta)` builds the shape-only model to restore into; it may raise
+    ValueError when meta describes another network. Raises FileNotFoundError (with `missing_hint`)
+    when there is no such checkpoint.
+    """
+    import orbax.checkpoint as ocp
+
+    directory = os.path.abspath(os.path.join(os.fspath(run_dir), CHECKPOINT_DIR))
+    if not os.path.isdir(directory):
+        raise FileNotFoundError(f"no checkpoints in {run_dir} (expected {directory}){missing_hint}")
+    manager = ocp.CheckpointManager(directory, options=ocp.CheckpointManagerOptions(create=False))
+    try:
+        step = manager.latest_step() if epoch is None else epoch
+        if step is None or step not in manager.all_steps():
+            raise FileNotFoundError(f"no checkpoint for epoch {epoch} in {directory} (have {manager.all_steps()})")
+        meta = manager.restore(step, args=ocp.args.Composite(**{META_ITEM: ocp.args.JsonRestore()}))[META_ITEM]
+        graphdef, abstract = nnx.split(abstract_from_meta(meta))
+        target = jax.tree.map(ocp.utils.to_shape_dtype_struct, abstract)
+        restored = manager.restore(step, args=ocp.args.Composite(**{PARAMS_ITEM: ocp.args.StandardRestore(target)}))
+    finally:
+        manager.close()
+    return nnx.merge(graphdef, restored[PARAMS_ITEM]), meta
+
+
 def load_model(run_dir: str | os.PathLike, epoch: int | None = None) -> tuple[ERNet, dict[str, Any]]:
     """Load a trained ERNet from a `sgjax train` run directory -> (model, meta).
 
     epoch: which epoch's checkpoint (None: the latest). meta holds the model/training configs and the
     metric history. Raises FileNotFoundError when the directory holds no checkpoint.
     """
-    import orbax.checkpoint as ocp
-
-    directory = os.path.abspath(os.path.join(os.fspath(run_dir), CHECKPOINT_DIR))
-    if not os.path.isdir(directory):
-        raise FileNotFoundError(f"no checkpoints in {run_dir} (expected {directory})")
-    manager = ocp.CheckpointManager(directory, options=ocp.CheckpointManagerOptions(create=False))
-    step = manager.latest_step() if epoch is None else epoch
-    if step is None or step not in manager.all_steps():
-        raise FileNotFoundError(f"no checkpoint for epoch {epoch} in {directory} (have {manager.all_steps()})")
-    meta = manager.restore(step, args=ocp.args.Composite(**{META_ITEM: ocp.args.JsonRestore()}))[META_ITEM]
-    model = abstract_model(ERNetConfig.from_dict(meta["model_config"]))
-    graphdef, abstract = nnx.split(model)
-    target = jax.tree.map(ocp.utils.to_shape_dtype_struct, abstract)
-    restored = manager.restore(step, args=ocp.args.Composite(**{PARAMS_ITEM: ocp.args.StandardRestore(target)}))
-    manager.close()
-    return nnx.merge(graphdef, restored[PARAMS_ITEM]), meta
-
+    return restore_run(run_dir, epoch, lambda meta: abstract_model(ERNetConfig.from_dict(meta["model_config"])))

@@ -30,7 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sgjax.rotations import rot_z
+from sgjax.rotations import points_from_frame, points_to_frame, rot_z
 
 
 @dataclasses.dataclass(frozen=True)
@@ -180,14 +180,14 @@ def to_world(points_local: jax.Array, pose: jax.Array) -> jax.Array:
     """Gripper-frame points[..., N, 3] -> world [..., N, 3] (p_w = R p_g + t)."""
     points_local, pose = _points(points_local, "points_local"), _pose(pose)
     rotation, translation = pose[..., :3, :3], pose[..., :3, 3]
-    return jnp.einsum("...ij,...nj->...ni", rotation, points_local) + translation[..., None, :]
+    return points_from_frame(points_local, rotation, translation)
 
 
 def to_gripper_frame(points_world: jax.Array, pose: jax.Array) -> jax.Array:
     """World points[..., N, 3] -> gripper-frame [..., N, 3] (p_g = R^T (p_w - t))."""
     points_world, pose = _points(points_world, "points_world"), _pose(pose)
     rotation, translation = pose[..., :3, :3], pose[..., :3, 3]
-    return jnp.einsum("...ni,...ij->...nj", points_world - translation[..., None, :], rotation)
+    return points_to_frame(points_world, rotation, translation)
 
 
 def deepened_pose(pose: jax.Array, spec: GripperSpec) -> jax.Array:
@@ -298,13 +298,15 @@ def gripper_boxes(pose: jax.Array, width: jax.Array | float, spec: GripperSpec) 
 
 
 def local_regions(
-    local: jax.Array, width: jax.Array | float, spec: GripperSpec, margin: float = 0.0
+    local: jax.Array, width: jax.Array | float, spec: GripperSpec, margin: float = 0.0, sweep: float = 0.0
 ) -> tuple[jax.Array, jax.Array]:
     """Region membership of gripper-frame points, without re-transforming them per box.
 
     local[..., N, 3] (e.g. from `to_gripper_frame`), width broadcastable to [...] ->
     (in_closing_region bool[..., N], in_fingers_or_palm bool[..., N]). The same boxes as
-    `closing_region_box` and `gripper_boxes` (the latter grown by `margin`).
+    `closing_region_box` and `gripper_boxes` (the latter grown by `margin`). sweep >= 0: the fingers and
+    palm swept back by that much along -z, i.e. every position of the open hand on the straight approach
+    over the last `sweep` metres (the closing region is not swept).
     """
     local = _points(local, "local")
     half_w = 0.5 * jnp.asarray(width, local.dtype)[..., None]
@@ -315,11 +317,11 @@ def local_regions(
     finger = (
         (jnp.abs(x - half_w - 0.5 * spec.finger_thickness) <= 0.5 * spec.finger_thickness + margin)
         & (y <= 0.5 * spec.finger_width + margin)
-        & (z >= -margin)
+        & (z >= -margin - sweep)
         & (z <= spec.finger_length + margin)
     )
-    px, py, pz = (0.5 * s + margin for s in spec.palm_size)
-    palm = (x <= px) & (y <= py) & (jnp.abs(z + 0.5 * spec.palm_size[2]) <= pz)
+    px, py = (0.5 * s + margin for s in spec.palm_size[:2])
+    palm = (x <= px) & (y <= py) & (z >= -spec.palm_size[2] - margin - sweep) & (z <= margin)
     return closing, finger | palm
 
 
@@ -374,7 +376,7 @@ def adapt_to_cloud(local, valid, poses, widths, spec: GripperSpec, max_shift: fl
 def points_in_box(points: jax.Array, box: Box, margin: float = 0.0) -> jax.Array:
     """Whether points[..., N, 3] lie in the closed boxes [...] grown by `margin` -> bool[..., N]."""
     points = _points(points)
-    local = jnp.einsum("...ni,...ij->...nj", points - box.centre[..., None, :], box.rotation)
+    local = points_to_frame(points, box.rotation, box.centre)
     return jnp.all(jnp.abs(local) <= box.half_extents[..., None, :] + margin, axis=-1)
 
 

@@ -60,6 +60,13 @@ KIND_NONE, KIND_EVALUATED, KIND_REFINED = 0, 1, 2
 KIND_NAMES = {KIND_NONE: None, KIND_EVALUATED: "evaluated", KIND_REFINED: "refined"}
 
 
+def check_thresholds(config) -> None:
+    """Raise ValueError unless config.eval_threshold and config.refine_threshold lie in [0, 1)."""
+    for name in ("eval_threshold", "refine_threshold"):
+        if not 0.0 <= getattr(config, name) < 1.0:
+            raise ValueError(f"{name} must be in [0, 1), got {getattr(config, name)}")
+
+
 @dataclasses.dataclass(frozen=True)
 class PlannerConfig:
     """Planner settings (hashable).
@@ -114,9 +121,7 @@ class PlannerConfig:
             object.__setattr__(self, "support_plane", plane)
         if self.scene_voxel < 0:
             raise ValueError(f"scene_voxel must be >= 0 (0: no voxel grid), got {self.scene_voxel}")
-        for name in ("eval_threshold", "refine_threshold"):
-            if not 0.0 <= getattr(self, name) < 1.0:
-                raise ValueError(f"{name} must be in [0, 1), got {getattr(self, name)}")
+        check_thresholds(self)
 
     @property
     def spec(self) -> GripperSpec:

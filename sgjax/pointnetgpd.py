@@ -47,15 +47,16 @@ from sgjax import gripper
 from sgjax.ernet import (
     CHECKPOINT_DIR,
     DEFAULT_SPEC,
-    META_ITEM,
-    PARAMS_ITEM,
     Region,
     anchor_feature,
+    check_candidates,
     evaluation_loss,
     first_points,
     forward_chunked,
     in_closing_region_local,
     region_inputs,
+    restore_run,
+    scene_candidates,
 )
 from sgjax.gripper import GripperSpec
 from sgjax.pointnet2 import (
@@ -64,6 +65,7 @@ from sgjax.pointnet2 import (
     interleave,
     pack_interleaved,
 )
+from sgjax.rotations import points_to_frame
 
 NETWORK = "pointnetgpd"  # meta["network"] of a PointNetGPD run directory
 DEFAULT_MODEL_DIR = Path(__file__).resolve().parent / "models" / "pointnetgpd_default"
@@ -154,7 +156,7 @@ def crop_closing_regions(
     scene = jnp.asarray(scene, jnp.float32)
     if scene.ndim != 2 or scene.shape[-1] != 3:
         raise ValueError(f"scene must have shape [N, 3], got {scene.shape}")
-    poses, widths = _check_candidates(poses, widths)
+    poses, widths = check_candidates(poses, widths)
     valid = jnp.all(jnp.isfinite(scene), -1)
     if scene_mask is not None:
         scene_mask = jnp.asarray(scene_mask)
@@ -174,18 +176,8 @@ def crop_closing_regions(
     index, count = first_set_bits(words, scene.shape[0], n_points)
     mask = jnp.arange(n_points) < count[:, None]
     picked = jnp.where(valid[:, None], scene, 0.0)[jnp.minimum(index, scene.shape[0] - 1)]
-    points = jnp.einsum("mpi,mij->mpj", picked - translation[:, None, :], rotation)
+    points = points_to_frame(picked, rotation, translation)
     return Region(jnp.where(mask[..., None], points, 0.0), mask, count)
-
-
-def _check_candidates(poses, widths) -> tuple[jax.Array, jax.Array]:
-    poses = jnp.asarray(poses, jnp.float32)
-    if poses.ndim != 3 or poses.shape[-2:] != (4, 4):
-        raise ValueError(f"poses must have shape [M, 4, 4], got {poses.shape}")
-    widths = jnp.asarray(widths, jnp.float32)
-    if widths.shape != poses.shape[:1]:
-        raise ValueError(f"widths must have shape [M] = {poses.shape[:1]} (one per pose), got {widths.shape}")
-    return poses, widths
 
 
 # ---------------------------------------------------------------------------------------------
@@ -304,21 +296,10 @@ def score(
     """
     model = nnx.merge(graphdef, state)
     config: PointNetGPDConfig = model.config
-    scene = jnp.asarray(scene, jnp.float32)
-    if scene.ndim != 2 or scene.shape[-1] != 3:
-        raise ValueError(f"scene must have shape [N, 3], got {scene.shape}")
-    poses, widths = _check_candidates(poses, widths)
-    if scene_mask is not None and jnp.shape(scene_mask) != scene.shape[:1]:
-        raise ValueError(f"scene_mask must have shape {scene.shape[:1]}, got {jnp.shape(scene_mask)}")
-    key = jax.random.key(0) if key is None else key
-    order = jax.random.permutation(key, scene.shape[0])
-    scene_mask = None if scene_mask is None else jnp.asarray(scene_mask)[order]
-    ok = jnp.all(jnp.isfinite(poses), axis=(-2, -1)) & jnp.isfinite(widths) & gripper.width_in_range(widths, spec)
-    safe_poses = jnp.where(ok[:, None, None], poses, jnp.eye(4))
-    safe_widths = jnp.where(ok, widths, 0.0)
-    region = crop_closing_regions(scene[order], safe_poses, safe_widths, spec, config.n_points, scene_mask)
+    c = scene_candidates(scene, poses, widths, scene_mask, spec, key)
+    region = crop_closing_regions(c.scene, c.poses, c.widths, spec, config.n_points, c.scene_mask)
     inputs = PointNetGPDInputs(region.points, region.mask)
-    valid = ok & inputs.valid
+    valid = c.ok & inputs.valid
     prob = probability(forward_chunked(model, inputs))
     return PointNetGPDScores(jnp.where(valid, prob, 0.0), valid, region.count)
 
@@ -338,27 +319,15 @@ def load_model(run_dir: str | os.PathLike, epoch: int | None = None) -> tuple[Po
     epoch: which epoch (None: the latest). Raises FileNotFoundError when there is no checkpoint and
     ValueError when the run directory holds another network (e.g. an E-RNet run).
     """
-    import orbax.checkpoint as ocp
 
-    directory = os.path.abspath(os.path.join(os.fspath(run_dir), CHECKPOINT_DIR))
-    if not os.path.isdir(directory):
-        raise FileNotFoundError(f"no PointNetGPD checkpoints in {run_dir} (expected {directory}); train one with `{TRAIN_COMMAND}`")
-    manager = ocp.CheckpointManager(directory, options=ocp.CheckpointManagerOptions(create=False))
-    try:
-        step = manager.latest_step() if epoch is None else epoch
-        if step is None or step not in manager.all_steps():
-            raise FileNotFoundError(f"no checkpoint for epoch {epoch} in {directory} (have {manager.all_steps()})")
-        meta = manager.restore(step, args=ocp.args.Composite(**{META_ITEM: ocp.args.JsonRestore()}))[META_ITEM]
+    def abstract_from_meta(meta: dict[str, Any]) -> PointNetGPD:
         if meta.get("network") != NETWORK:
             raise ValueError(
                 f"{run_dir} holds a {meta.get('network') or 'E-RNet'} run, not a PointNetGPD run (train one with `{TRAIN_COMMAND}`)"
             )
-        graphdef, abstract = nnx.split(abstract_model(PointNetGPDConfig.from_dict(meta["model_config"])))
-        target = jax.tree.map(ocp.utils.to_shape_dtype_struct, abstract)
-        restored = manager.restore(step, args=ocp.args.Composite(**{PARAMS_ITEM: ocp.args.StandardRestore(target)}))
-    finally:
-        manager.close()
-    return nnx.merge(graphdef, restored[PARAMS_ITEM]), meta
+        return abstract_model(PointNetGPDConfig.from_dict(meta["model_config"]))
+
+    return restore_run(run_dir, epoch, abstract_from_meta, missing_hint=f"; train one with `{TRAIN_COMMAND}`")
 
 
 @functools.lru_cache(maxsize=1)

@@ -258,8 +258,11 @@ def build_database(cfg: DBConfig = DBConfig(), workers: int | None = None, progr
     templates = [templates[i] for i in keep]
     fit = _fit_primitives(shapes, cfg, progress)
 
+    from tqdm import tqdm
+
     rows, grasps, widths, ids, counts = [], [], [], [], []
-    for i, (poses, w) in enumerate(templates):
+    # Closing each set under the frame flips takes about as long as placing the templates: show it.
+    for i, (poses, w) in enumerate(tqdm(templates, desc="frame symmetries", unit="prim", disable=not progress)):
         if not fit.valid[i]:
             continue
         sq_pose = np.asarray(pose_matrix(fit.rotation[i], fit.translation[i]), np.float64)

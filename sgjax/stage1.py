@@ -163,17 +163,20 @@ def _pipeline(obj, obj_mask, scene, scene_mask, viewpoint, plane, scale, db: Mat
     take = lambda x: jnp.take_along_axis(x, order.reshape(order.shape + (1,) * (x.ndim - 2)), 1)
     poses, widths, valid = take(poses), take(widths), take(mask)
     rank = order // g
+    local = jax.vmap(to_gripper_frame)(obj, poses)  # [B, M, N, 3]: shared by the adaptation and the filters
     if cfg.adapt_width:
-        local = jax.vmap(to_gripper_frame)(obj, poses)  # [B, M, N, 3]
         adapt = lambda lc, om, p, w: adapt_to_cloud(lc, om, p, w, cfg.spec, cfg.max_recentre)
-        poses, widths = jax.vmap(adapt)(local, obj_mask, poses, widths)
+        adapted, widths = jax.vmap(adapt)(local, obj_mask, poses, widths)
+        # Re-centring moves each grasp along its own closing axis: its local x shifts by as much.
+        shift = jnp.sum((adapted[..., :3, 3] - poses[..., :3, 3]) * poses[..., :3, 0], -1)
+        local, poses = local.at[..., 0].add(-shift[..., None]), adapted
     normals = estimate_normals(obj, obj_mask, viewpoint, cfg.filter.normal_neighbours)
 
-    def one(p, w, v, o, om, nrm, s, sm, pl, sc):
+    def one(p, w, v, o, om, nrm, s, sm, pl, sc, lc):
         s, sm = (s, sm) if has_scene else (None, None)
-        return coarse_filter(p, w, v, o, om, nrm, s, sm, cfg.spec, cfg.filter, pl, sc)
+        return coarse_filter(p, w, v, o, om, nrm, s, sm, cfg.spec, cfg.filter, pl, sc, object_local=lc)
 
-    filt = jax.vmap(one)(poses, widths, valid, obj, obj_mask, normals, scene, scene_mask, plane, scale)
+    filt = jax.vmap(one)(poses, widths, valid, obj, obj_mask, normals, scene, scene_mask, plane, scale, local)
     return {
         "fit": fit,
         "poses": poses,

@@ -16,7 +16,7 @@ import numpy as np
 import trimesh
 from jax.scipy.special import gammaln
 
-from sgjax.rotations import proper, rot_z
+from sgjax.rotations import points_to_frame, proper, rot_z
 
 # Shape exponents are clamped to this range: eps in (0, 2] is convex (paper Sec. II-A), and eps >= 0.1
 # keeps powers like |x|^(2/eps) finite in float32.
@@ -74,7 +74,7 @@ def pose_matrix(rotation: jax.Array, translation: jax.Array) -> jax.Array:
 
 def to_local(points: jax.Array, sq: Superquadric) -> jax.Array:
     """World points[..., N, 3] -> superquadric-frame coordinates [..., N, 3]."""
-    return jnp.einsum("...ni,...ij->...nj", points - sq.translation[..., None, :], sq.rotation)
+    return points_to_frame(points, sq.rotation, sq.translation)
 
 
 def log_implicit_local(local: jax.Array, scale: jax.Array, epsilon: jax.Array) -> jax.Array:

@@ -294,3 +294,34 @@ def test_local_regions_agree_with_world_boxes():
         assert bool(collides_with_points(pts[i : i + 1], None, pose, width, spec))
     for i in np.flatnonzero(~np.asarray(gripper))[:20]:
         assert not bool(collides_with_points(pts[i : i + 1], None, pose, width, spec))
+
+
+def test_frames_match_the_matrix_formula_batched():
+    from sgjax.rotations import points_from_frame, points_to_frame
+
+    poses = np.asarray(random_pose(11, (5,)), np.float64)
+    pts = np.random.default_rng(0).uniform(-0.3, 0.3, (7, 3))
+    local = np.asarray(points_to_frame(jnp.asarray(pts, jnp.float32), jnp.asarray(poses[:, :3, :3], jnp.float32),
+                                       jnp.asarray(poses[:, :3, 3], jnp.float32)))
+    expected = (pts[None] - poses[:, None, :3, 3]) @ poses[:, :3, :3]  # R^T (p - t), row form
+    assert local.shape == (5, 7, 3)
+    np.testing.assert_allclose(local, expected, atol=1e-6)
+    back = points_from_frame(jnp.asarray(expected, jnp.float32), jnp.asarray(poses[:, :3, :3], jnp.float32),
+                             jnp.asarray(poses[:, :3, 3], jnp.float32))
+    np.testing.assert_allclose(np.asarray(back), np.broadcast_to(pts, (5, 7, 3)), atol=1e-6)
+
+
+def test_swept_hand_is_the_union_of_hand_positions_along_the_approach():
+    from sgjax.gripper import local_regions
+
+    rng = np.random.default_rng(4)
+    local = jnp.asarray(rng.uniform([-0.06, -0.03, -0.12], [0.06, 0.03, 0.07], (20000, 3)), jnp.float32)
+    sweep, width = 0.05, 0.05
+    _, swept = local_regions(local, width, SPEC, 0.005, sweep)
+    # The hand backed off by d sees every point d further along +z; many small steps cover the sweep.
+    union = np.zeros(len(local), bool)
+    for d in np.linspace(0.0, sweep, 101):
+        union |= np.asarray(local_regions(local.at[:, 2].add(d), width, SPEC, 0.005)[1])
+    np.testing.assert_array_equal(np.asarray(swept), union)
+    _, still = local_regions(local, width, SPEC, 0.005)
+    assert np.sum(swept) > np.sum(np.asarray(still)) > 0  # the sweep reaches points the grasp alone does not

@@ -16,15 +16,10 @@ take the run directory as their `model`.
 
 from __future__ import annotations
 
-import dataclasses
-import functools
 import os
 from collections.abc import Callable, Mapping
 
-import jax
-import jax.numpy as jnp
 import numpy as np
-import optax
 from flax import nnx
 
 from sgjax.pointnetgpd import (
@@ -36,7 +31,15 @@ from sgjax.pointnetgpd import (
     probability,
 )
 from train import dataset
-from train.trainer import TrainConfig, TrainResult, make_optimizer, run_training
+from train.trainer import (
+    TrainConfig,
+    TrainResult,
+    classification_stats,
+    jit_steps,
+    make_optimizer,
+    run_training,
+    steps_builder,
+)
 
 
 def default_config(**overrides) -> TrainConfig:
@@ -44,58 +47,29 @@ def default_config(**overrides) -> TrainConfig:
     return TrainConfig(**{"model": PointNetGPDConfig(), **overrides})
 
 
+@steps_builder
 def make_steps(graphdef: nnx.GraphDef, config: TrainConfig):
-    """-> (tx, train_step, eval_step), jitted once per batch shape and cached as `trainer.make_steps`.
+    """-> (tx, train_step, eval_step), jitted once per batch shape and cached (`trainer.steps_builder`).
 
     train_step(params, opt_state, batch, key) -> (params, opt_state, stats)
     eval_step(params, batch, key) -> stats   (no noise)
     Stats are the trainer's weighted sums without the refinement entries.
     """
-    step_config = dataclasses.replace(config, epochs=1, seed=0, held_out_fraction=0.0, prefetch=1)
-    return _make_steps(graphdef, step_config)
-
-
-@functools.lru_cache(maxsize=8)
-def _make_steps(graphdef: nnx.GraphDef, config: TrainConfig):
     model_config, spec = config.model, config.spec
-    tx = make_optimizer(config)
 
     def forward(params, batch: dataset.Batch, key, noise_std: float):
         model = nnx.merge(graphdef, params)
         inputs = prepare_inputs(batch.region, batch.region_mask, batch.width, spec, model_config, key=key, noise_std=noise_std)
         weight = batch.weight * inputs.valid  # an empty closing region: nothing to classify, excluded
         logits = model(inputs)
-        value = loss(logits, batch.label, model_config, weight)
-        return value, (logits, weight)
+        return loss(logits, batch.label, model_config, weight), (logits, weight)
 
-    def stats(logits, batch, weight, value):
-        label = batch.label.astype(jnp.int32)
-        predicted = probability(logits) >= config.threshold
-        n = jnp.sum(weight)
-        return {
-            "n": n,
-            "skipped": jnp.sum(batch.weight * (weight == 0)),
-            "loss": value * n,
-            "eval_loss": value * n,
-            "correct": jnp.sum(weight * (jnp.argmax(logits, -1) == label)),
-            "tp": jnp.sum(weight * (predicted & (label == 1))),
-            "fp": jnp.sum(weight * (predicted & (label == 0))),
-            "fn": jnp.sum(weight * (~predicted & (label == 1))),
-        }
+    def stats(batch, value, aux):
+        logits, weight = aux
+        sums = classification_stats(probability(logits), logits, batch.label, weight, batch.weight, config.threshold)
+        return {**sums, "loss": value * sums["n"], "eval_loss": value * sums["n"]}
 
-    def train_step(params, opt_state, batch, key):
-        (value, (logits, weight)), grads = jax.value_and_grad(forward, has_aux=True)(
-            params, batch, key, model_config.noise_std
-        )
-        updates, opt_state = tx.update(grads, opt_state, params)
-        params = optax.apply_updates(params, updates)
-        return params, opt_state, stats(logits, batch, weight, value)
-
-    def eval_step(params, batch, key):
-        value, (logits, weight) = forward(params, batch, key, 0.0)
-        return stats(logits, batch, weight, value)
-
-    return tx, jax.jit(train_step, donate_argnums=(0, 1)), jax.jit(eval_step)
+    return jit_steps(make_optimizer(config), forward, stats, model_config.noise_std)
 
 
 def train(

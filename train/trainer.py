@@ -106,44 +106,85 @@ def make_optimizer(config: TrainConfig) -> optax.GradientTransformation:
 # Jitted steps.
 
 
-def _batch_stats(output, batch: dataset.Batch, weight, loss, parts, threshold: float) -> dict[str, jax.Array]:
-    """Weighted sums over one batch, accumulated on device and turned into metrics per epoch."""
-    p = output.eval_prob
-    label = batch.label.astype(jnp.int32)
-    predicted = p >= threshold
-    refine_ok = (output.refine_prob >= 0.5) == (batch.refine_labels == 1)
-    n = jnp.sum(weight)
+def classification_stats(prob, logits, label, weight, batch_weight, threshold: float) -> dict[str, jax.Array]:
+    """Weighted sums of a binary grasp classifier over one batch (summed per epoch, see `summarise`).
+
+    prob [B] P(success), logits [B, 2], label [B] in {0, 1}, weight [B] (0: excluded), batch_weight [B]
+    (0: padding) -> n, skipped (real samples excluded), correct, tp, fp, fn at `threshold`.
+    """
+    label = label.astype(jnp.int32)
+    predicted = prob >= threshold
     return {
-        "n": n,
-        "skipped": jnp.sum(batch.weight * (weight == 0)),
-        "loss": loss * n,
-        "eval_loss": parts["eval"] * n,
-        "refine_loss": parts["refine"] * n,
-        "correct": jnp.sum(weight * (jnp.argmax(output.eval_logits, -1) == label)),
+        "n": jnp.sum(weight),
+        "skipped": jnp.sum(batch_weight * (weight == 0)),
+        "correct": jnp.sum(weight * (jnp.argmax(logits, -1) == label)),
         "tp": jnp.sum(weight * (predicted & (label == 1))),
         "fp": jnp.sum(weight * (predicted & (label == 0))),
         "fn": jnp.sum(weight * (~predicted & (label == 1))),
+    }
+
+
+def _batch_stats(output, batch: dataset.Batch, weight, loss, parts, threshold: float) -> dict[str, jax.Array]:
+    """E-RNet's weighted sums over one batch: the classifier's plus losses and refinement accuracy."""
+    stats = classification_stats(output.eval_prob, output.eval_logits, batch.label, weight, batch.weight, threshold)
+    n = stats["n"]
+    refine_ok = (output.refine_prob >= 0.5) == (batch.refine_labels == 1)
+    return {
+        **stats,
+        "loss": loss * n,
+        "eval_loss": parts["eval"] * n,
+        "refine_loss": parts["refine"] * n,
         "refine_correct": jnp.sum(weight[:, None] * refine_ok, axis=0),
     }
 
 
+def step_config(config: TrainConfig) -> TrainConfig:
+    """The part of a TrainConfig the jitted steps depend on (the cache key of `make_steps`): not the
+    epochs, seed, split or prefetch, so a resumed run or a notebook re-run does not recompile."""
+    return dataclasses.replace(config, epochs=1, seed=0, held_out_fraction=0.0, prefetch=1)
+
+
+def jit_steps(tx: optax.GradientTransformation, forward: Callable, stats: Callable, noise_std: float):
+    """-> (tx, train_step, eval_step) for any network of this trainer.
+
+    forward(params, batch, key, noise_std) -> (loss, aux); stats(batch, loss, aux) -> dict of sums.
+    train_step(params, opt_state, batch, key) -> (params, opt_state, stats) (params and state donated);
+    eval_step(params, batch, key) -> stats, without input noise.
+    """
+
+    def train_step(params, opt_state, batch, key):
+        (loss, aux), grads = jax.value_and_grad(forward, has_aux=True)(params, batch, key, noise_std)
+        updates, opt_state = tx.update(grads, opt_state, params)
+        return optax.apply_updates(params, updates), opt_state, stats(batch, loss, aux)
+
+    def eval_step(params, batch, key):
+        loss, aux = forward(params, batch, key, 0.0)
+        return stats(batch, loss, aux)
+
+    return tx, jax.jit(train_step, donate_argnums=(0, 1)), jax.jit(eval_step)
+
+
+def steps_builder(build: Callable[[nnx.GraphDef, TrainConfig], tuple]) -> Callable[[nnx.GraphDef, TrainConfig], tuple]:
+    """Decorate a `build(graphdef, config) -> (tx, train_step, eval_step)` so that its result is cached
+    by what the steps depend on (`step_config`): every `train` call with the same model and optimiser
+    settings (a resumed run with more epochs, a notebook re-run) reuses one compilation."""
+    cached = functools.lru_cache(maxsize=8)(build)
+
+    @functools.wraps(build)
+    def make(graphdef: nnx.GraphDef, config: TrainConfig) -> tuple:
+        return cached(graphdef, step_config(config))
+
+    return make
+
+
+@steps_builder
 def make_steps(graphdef: nnx.GraphDef, config: TrainConfig):
-    """-> (tx, train_step, eval_step), the steps jitted once per batch shape and shared by every
-    `train` call with the same model and optimiser settings (a resumed run with more epochs, a
-    notebook re-run: no recompilation).
+    """E-RNet's -> (tx, train_step, eval_step), jitted once per batch shape (see `steps_builder`).
 
     train_step(params, opt_state, batch, key) -> (params, opt_state, stats)
     eval_step(params, batch, key) -> stats  (no noise; `key` fixes the downsampling)
     """
-    # Only what the steps depend on is the cache key (not epochs, seed, split, prefetch).
-    step_config = dataclasses.replace(config, epochs=1, seed=0, held_out_fraction=0.0, prefetch=1)
-    return _make_steps(graphdef, step_config)
-
-
-@functools.lru_cache(maxsize=8)
-def _make_steps(graphdef: nnx.GraphDef, config: TrainConfig):
     model_config, spec = config.model, config.spec
-    tx = make_optimizer(config)
 
     def forward(params, batch: dataset.Batch, key, noise_std: float):
         model = nnx.merge(graphdef, params)
@@ -156,18 +197,11 @@ def _make_steps(graphdef: nnx.GraphDef, config: TrainConfig):
         loss, parts = ernet_loss(output, batch.label, batch.refine_labels, model_config, weight)
         return loss, (output, parts, weight)
 
-    def train_step(params, opt_state, batch, key):
-        grad_fn = jax.value_and_grad(forward, has_aux=True)
-        (loss, (output, parts, weight)), grads = grad_fn(params, batch, key, model_config.noise_std)
-        updates, opt_state = tx.update(grads, opt_state, params)
-        params = optax.apply_updates(params, updates)
-        return params, opt_state, _batch_stats(output, batch, weight, loss, parts, config.threshold)
-
-    def eval_step(params, batch, key):
-        loss, (output, parts, weight) = forward(params, batch, key, 0.0)
+    def stats(batch, loss, aux):
+        output, parts, weight = aux
         return _batch_stats(output, batch, weight, loss, parts, config.threshold)
 
-    return tx, jax.jit(train_step, donate_argnums=(0, 1)), jax.jit(eval_step)
+    return jit_steps(make_optimizer(config), forward, stats, model_config.noise_std)
 
 
 def summarise(stats: Mapping[str, Any]) -> dict[str, Any]:
