@@ -359,8 +359,16 @@ def adapt_to_cloud(local, valid, poses, widths, spec: GripperSpec, max_shift: fl
     near a finger, are left as transferred: filters (i) and (ii) judge them.
 
     local [M, N, 3] object points in each grasp frame, valid [N], poses [M, 4, 4], widths [M]
-    -> (poses [M, 4, 4], widths [M]).
+    -> (poses [M, 4, 4], widths [M]). `recentre_and_widen` gives the shift instead of the moved poses.
     """
+    shift, widths = recentre_and_widen(local, valid, widths, spec, max_shift)
+    return poses.at[:, :3, 3].add(shift[:, None] * poses[:, :3, 0]), widths
+
+
+def recentre_and_widen(local, valid, widths, spec: GripperSpec, max_shift: float = 0.005):
+    """The rule of `adapt_to_cloud` in the grasp frames: local [M, N, 3], valid [N], widths [M] ->
+    (shift [M]: how far each grasp moves along its own closing axis x, widths [M]). Moving a grasp by
+    `shift` moves its gripper-frame points by -shift along x."""
     left, right = finger_stops(local, spec, valid[None, :])
     # Only where the observed points fit between the open fingers; elsewhere filter (i) or (ii) decides.
     seen = jnp.isfinite(left) & jnp.isfinite(right)
@@ -369,8 +377,7 @@ def adapt_to_cloud(local, valid, poses, widths, spec: GripperSpec, max_shift: fl
     fits = seen & (observed <= spec.max_opening)
     shift = jnp.where(fits, shift, 0.0)
     widths = jnp.where(fits, jnp.minimum(jnp.maximum(widths, observed), spec.max_opening), widths)
-    poses = poses.at[:, :3, 3].add(shift[:, None] * poses[:, :3, 0])
-    return poses, widths
+    return shift, widths
 
 
 def points_in_box(points: jax.Array, box: Box, margin: float = 0.0) -> jax.Array:

@@ -32,7 +32,7 @@ from sgjax.coarse_filter import (
     removal_counts,
 )
 from sgjax.ems import EMSConfig, FitResult, _fit_one
-from sgjax.gripper import GripperSpec, adapt_to_cloud, to_gripper_frame
+from sgjax.gripper import GripperSpec, recentre_and_widen, to_gripper_frame
 from sgjax.matching import MatchConfig, MatchDB, match, transfer_grasps
 from sgjax.primitive_db import DBConfig, PrimitiveDB, load_database
 
@@ -52,7 +52,7 @@ class Stage1Config:
     target_exclusion: float = 0.002  # scene points this close to an object point are the object itself
     # Re-apply the paper's width rule (delta from the surface) to the observed cloud after transfer,
     # re-centring each grasp on it by at most max_recentre: a matched primitive of another size would
-    # otherwise close a finger into the object (`sgjax.gripper.adapt_to_cloud`).
+    # otherwise close a finger into the object (`sgjax.gripper.adapt_to_cloud`, `recentre_and_widen`).
     adapt_width: bool = True
     max_recentre: float = 0.005
     # Objects rest on the support plane, which hides their bottom: with a plane given, EMS also fits the
@@ -165,11 +165,11 @@ def _pipeline(obj, obj_mask, scene, scene_mask, viewpoint, plane, scale, db: Mat
     rank = order // g
     local = jax.vmap(to_gripper_frame)(obj, poses)  # [B, M, N, 3]: shared by the adaptation and the filters
     if cfg.adapt_width:
-        adapt = lambda lc, om, p, w: adapt_to_cloud(lc, om, p, w, cfg.spec, cfg.max_recentre)
-        adapted, widths = jax.vmap(adapt)(local, obj_mask, poses, widths)
+        adapt = lambda lc, om, w: recentre_and_widen(lc, om, w, cfg.spec, cfg.max_recentre)
+        shift, widths = jax.vmap(adapt)(local, obj_mask, widths)  # [B, M] each
         # Re-centring moves each grasp along its own closing axis: its local x shifts by as much.
-        shift = jnp.sum((adapted[..., :3, 3] - poses[..., :3, 3]) * poses[..., :3, 0], -1)
-        local, poses = local.at[..., 0].add(-shift[..., None]), adapted
+        poses = poses.at[..., :3, 3].add(shift[..., None] * poses[..., :3, 0])
+        local = local.at[..., 0].add(-shift[..., None])
     normals = estimate_normals(obj, obj_mask, viewpoint, cfg.filter.normal_neighbours)
 
     def one(p, w, v, o, om, nrm, s, sm, pl, sc, lc):
