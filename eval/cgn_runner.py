@@ -101,12 +101,18 @@ def _numpy(value):
     return value
 
 
+# Replies go to the process's real stdout; everything else printed to stdout (cgn_pytorch prints
+# "Initializing net..." when loading) is sent to stderr, so it cannot corrupt the reply channel.
+_REPLIES = sys.stdout
+
+
 def _reply(record: dict) -> None:
-    sys.stdout.write(json.dumps(record) + "\n")
-    sys.stdout.flush()
+    _REPLIES.write(json.dumps(record) + "\n")
+    _REPLIES.flush()
 
 
 def serve() -> int:
+    sys.stdout = sys.stderr
     start = time.perf_counter()
     try:
         model = load_model()
@@ -133,7 +139,8 @@ def main(argv: list[str]) -> int:
     if len(argv) != 2:
         print(__doc__, file=sys.stderr)
         return 2
-    print(json.dumps(run(load_model(), argv[0], argv[1])))
+    sys.stdout = sys.stderr
+    _reply(run(load_model(), argv[0], argv[1]))
     return 0
 
 

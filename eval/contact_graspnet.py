@@ -21,9 +21,12 @@ pins conflict, hence --no-deps; meshcat is imported when cgn_pytorch loads.)
 
 What the adapter sends: the observation's finite points in the world frame (z up, metres) with
 their mean subtracted -- CGN's bundled scenes are stored that way, and a camera-frame or millimetre
-cloud gives confident nonsense -- at most `max_points` of them (a seeded uniform subsample; CGN's
-inference on 20,000 points takes ~1 s on CPU), and the object mask (labels >= 0, so grasps on the
-table are dropped). The seed reaches libc srand in the runner (torch-cluster's fps uses rand()).
+cloud gives confident nonsense. The cloud is made like SuperGrasp's Stage-2 scene cloud: cropped to
+the benchmark's workspace (+ 5 cm), one point per 3 mm voxel, then at most `max_points` (a seeded
+uniform subsample; CGN's inference on 20,000 points takes ~1 s on CPU). Without the crop and grid the
+20,000 points were ~90 % table, 8 % objects. With it goes the object mask (labels >= 0, so grasps on
+the table are dropped). The seed reaches libc srand in the runner (torch-cluster's fps uses rand()).
+The runner keeps its reply channel clean: cgn_pytorch's own prints go to its stderr.
 
 Grasp frames: CGN returns Panda hand poses: columns x = the baseline (closing) direction, y = z cross
 x, z = the approach direction; the origin is the hand frame, `gripper_depth` = 0.1034 m behind the
@@ -57,6 +60,7 @@ from pathlib import Path
 import numpy as np
 
 from eval.methods import Decision, MethodUnavailable
+from sgjax import pointcloud
 from sgjax.gripper import GripperSpec
 
 ENV_VAR = "SGJAX_CGN_PYTHON"
@@ -70,12 +74,16 @@ SETUP = (
 
 @dataclasses.dataclass(frozen=True)
 class CGNConfig:
-    """threshold: CGN's confidence threshold; max_points: the cloud sent (seeded subsample);
-    gripper_depth: CGN's hand-origin-to-fingertip distance (Panda, m); timeout_s: per request
+    """threshold: CGN's confidence threshold; max_points, voxel, scene_bounds: the cloud sent, made like
+    SuperGrasp's Stage-2 scene cloud (`sgjax.pointcloud.scene_cloud`: optional (lo [3], hi [3]) crop,
+    one point per voxel, then a seeded subsample); the method's factory crops to the benchmark's
+    workspace as SuperGrasp does; gripper_depth: CGN's hand-origin-to-fingertip distance (Panda, m); timeout_s: per request
     (the first includes loading the model); spec: the sgjax gripper the poses are converted to."""
 
     threshold: float = 0.5
     max_points: int = 20000
+    voxel: float = 0.003
+    scene_bounds: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
     gripper_depth: float = 0.1034
     timeout_s: float = 600.0
     spec: GripperSpec = dataclasses.field(default_factory=GripperSpec)
@@ -158,7 +166,11 @@ class ContactGraspNetMethod:
         if not line:
             code = self._process.wait(timeout=10)
             raise RuntimeError(f"the Contact-GraspNet runner exited (code {code}){self._log_tail()}")
-        return json.loads(line)
+        try:
+            return json.loads(line)
+        except json.JSONDecodeError:
+            raise RuntimeError(f"the Contact-GraspNet runner wrote a line that is not a reply: {line[:200]!r}"
+                               f"{self._log_tail()}") from None
 
     def _log_tail(self) -> str:
         self._stderr.flush()
@@ -198,13 +210,10 @@ class ContactGraspNetMethod:
     def plan(self, points: np.ndarray, labels: np.ndarray, viewpoint, seed: int = 0) -> Decision:
         cfg = self.config
         start = time.perf_counter()
-        points = np.asarray(points, np.float64).reshape(-1, 3)
-        labels = np.asarray(labels).reshape(-1)
-        keep = np.all(np.isfinite(points), axis=1)
-        points, labels = points[keep], labels[keep]
-        if len(points) > cfg.max_points:
-            idx = np.sort(np.random.default_rng(seed).choice(len(points), cfg.max_points, replace=False))
-            points, labels = points[idx], labels[idx]
+        points, mask, labels = pointcloud.scene_cloud(
+            np.asarray(points, np.float64).reshape(-1, 3), cfg.max_points, cfg.voxel,
+            np.asarray(labels).reshape(-1), cfg.scene_bounds, seed)
+        points, labels = points[mask].astype(np.float64), labels[mask]
         obj = labels >= 0
         if not obj.any():
             elapsed = time.perf_counter() - start

@@ -51,6 +51,10 @@ class FilterConfig:
     # continuous sweep: the union of >= 2 evenly spaced hand positions, each deeper than the spacing.)
     approach_steps: int = 4
     support_clearance: float = 0.003  # (v) every gripper box corner at least this far above the plane
+    # (iii) with a single view, a finger's contact surface may be hidden (e.g. the sides of an object
+    # lying flat, seen from above): True demands at least one observed aligned contact; False accepts
+    # grasps whose contacts are all hidden (observed contacts must still be aligned).
+    require_observed_contact: bool = True
 
 
 def estimate_normals(points: jax.Array, mask: jax.Array, viewpoint: jax.Array, k: int = 16) -> jax.Array:
@@ -105,7 +109,8 @@ def _normal_test(local, in_closing, normals, closing_axis, cfg: FilterConfig) ->
         aligned.append(best >= aligned_cos)
         observed.append(best >= observed_cos)
     aligned, observed = jnp.stack(aligned), jnp.stack(observed)
-    return jnp.all(aligned | ~observed, 0) & jnp.any(aligned, 0)
+    ok = jnp.all(aligned | ~observed, 0)
+    return ok & jnp.any(aligned, 0) if cfg.require_observed_contact else ok
 
 
 def coarse_filter(

@@ -204,7 +204,8 @@ def scene_cloud(
 
     points [N, 3] (non-finite rows dropped), optional labels [N] and axis-aligned bounds (lo [3],
     hi [3]) -> (points [max_points, 3] float32, mask [max_points] bool, labels [max_points] int32 or
-    None; padding label -1). Voxel-downsampled, then at most max_points drawn uniformly (seeded).
+    None; padding label -1). Voxel-downsampled (voxel 0: not), then at most max_points drawn uniformly
+    (seeded).
     """
     points = np.asarray(points, np.float64)
     if points.ndim != 2 or points.shape[-1] != 3:
@@ -216,7 +217,9 @@ def scene_cloud(
         lo, hi = (np.asarray(b, np.float64) for b in bounds)
         keep &= np.all((points >= lo) & (points <= hi), axis=1)
     kept_labels = None if labels is None else np.asarray(labels)[keep]
-    points, kept_labels = voxel_downsample(points[keep], voxel, kept_labels)
+    points = points[keep]
+    if voxel > 0:  # 0: no voxel grid
+        points, kept_labels = voxel_downsample(points, voxel, kept_labels)
     if len(points) > max_points:
         idx = np.sort(np.random.default_rng(seed).choice(len(points), size=max_points, replace=False))
         points = points[idx]

@@ -18,6 +18,7 @@ from flax import nnx
 
 from envs.camera import CameraConfig, observe
 from envs.objects import tiny_object_set
+from envs.scene import workspace_bounds
 from eval import baselines, contact_graspnet
 from eval.declutter import (
     DeclutterConfig,
@@ -33,6 +34,7 @@ from sgjax.cli import main
 from sgjax.ernet import ERNet, ERNetConfig
 from sgjax.gripper import GripperSpec
 from train import dataset
+from train.label import LabelConfig
 from train import train_pointnetgpd as tp
 
 SPEC = GripperSpec()
@@ -311,11 +313,13 @@ import numpy as np
 
 def from_pretrained(device="cuda"):
     assert device == "cpu"
+    print("Initializing net...")  # as the real package does, on stdout
     return "model", None, None
 
 def inference(model, pcd, threshold=0.5, obj_mask=None):
     assert pcd.ndim == 2 and pcd.shape[1] == 3 and np.abs(pcd.mean(0)).max() < 1e-4, "not mean-subtracted"
     assert obj_mask.ndim == 1 and obj_mask.dtype == np.float32 and threshold == 0.5
+    print("inference on", len(pcd), "points")
     c = pcd[obj_mask > 0].mean(0)
     down = np.array([[1.0, 0, 0], [0, -1.0, 0], [0, 0, -1.0]])  # approach straight down, closing along x
     grasps = np.tile(np.eye(4), (2, 1, 1))
@@ -331,7 +335,10 @@ def test_contact_graspnet_runner_protocol_and_frames(monkeypatch, tmp_path):
     (tmp_path / "cgn_pytorch" / "__init__.py").write_text(textwrap.dedent(FAKE_CGN))
     monkeypatch.setenv(contact_graspnet.ENV_VAR, sys.executable)
     monkeypatch.setenv("PYTHONPATH", str(tmp_path))
-    method = make_method("contact-graspnet")
+    default = make_method("contact-graspnet")  # crops to the benchmark's workspace, as SuperGrasp does
+    assert default.config.scene_bounds == workspace_bounds(LabelConfig().scene, LabelConfig().workspace_margin)
+    # No voxel grid here, so the fake's centroid is exactly the box's.
+    method = make_method("contact-graspnet", config=contact_graspnet.CGNConfig(voxel=0.0))
     rng = np.random.default_rng(0)
     table = np.c_[rng.uniform(-0.2, 0.2, (500, 2)), np.zeros(500)]
     box = rng.uniform([0.05, 0.05, 0.0], [0.09, 0.07, 0.06], (300, 3))

@@ -286,3 +286,23 @@ def test_supergrasp_methods_run_a_tiny_scene(objects, small_db):
         assert all(a["info"]["kind"] in ("evaluated", "refined") for a in attempts)
         assert all(a["score"] == pytest.approx(0.982, abs=1e-3) for a in attempts)
         assert all(set(a["timing"]) == set(metrics.TIMING_KEYS) for a in attempts)
+
+
+@pytest.mark.skipif(METHODS["contact-graspnet"].unavailable_reason() is not None,
+                    reason="Contact-GraspNet's environment is not set up ($SGJAX_CGN_PYTHON)")
+def test_contact_graspnet_runs_a_tiny_scene(objects):
+    """The real cgn-pytorch model, out of process: a tiny scene runs by the rules (outcomes are its own)."""
+    method = make_method("contact-graspnet")
+    try:
+        run = run_scene(method, objects, N_OBJECTS, seed=0, index=0, config=CONFIG, setting=f"tiny-{N_OBJECTS}")
+    finally:
+        method.close()
+    log_ = run.log
+    assert log_["method"] == "contact-graspnet" and log_["end"] in ("cleared", "attempt_cap", "no_grasp")
+    assert len(log_["attempts"]) <= log_["objects"] + 5
+    for a in log_["attempts"]:
+        pose = np.asarray(a["pose"])
+        np.testing.assert_allclose(pose[:3, :3].T @ pose[:3, :3], np.eye(3), atol=1e-9)
+        assert a["info"]["grasps"] >= 1 and 0.5 <= a["score"] <= 1.0
+    if not log_["attempts"]:
+        assert "no grasp above confidence" in log_["final_reason"]

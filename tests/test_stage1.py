@@ -197,6 +197,30 @@ def test_each_filter_removes_exactly_its_case():
     assert not bool(padded.keep[0])
 
 
+def test_hidden_contacts_are_not_evidence_against_a_grasp_when_allowed():
+    """Filter (iii) on a lying flat box seen only from above: the fingers' contact sides are hidden."""
+    full = _box_cloud(half=(0.05, 0.015, 0.0075))  # 10 x 3 x 1.5 cm, like a knife's handle
+    top = full[full[:, 2] > 0.0074]  # the top face only, normals up
+    down = np.array([0, 0, -1.0])
+    grasp = grasp_frame(down, np.array([0, 1.0, 0]), np.array([0, 0, 0.046]))[None]  # tips 4 mm above the bottom
+    angled = grasp_frame(down, np.array([0.5, np.sqrt(0.75), 0]), np.array([0, 0, 0.046]))[None]
+    strict, relaxed = FilterConfig(), FilterConfig(require_observed_contact=False)
+
+    def normal_bad(cloud, pose, width, cfg):
+        mask = jnp.ones(len(cloud), bool)
+        normals = estimate_normals(jnp.asarray(cloud), mask, jnp.asarray([0.0, 0.0, 1.0]))
+        res = coarse_filter(jnp.asarray(pose, jnp.float32), jnp.full(1, width), jnp.ones(1, bool), jnp.asarray(cloud),
+                            mask, normals, cfg=cfg)
+        return bool(res.normal_angle[0]), bool(res.keep[0])
+
+    assert normal_bad(top, grasp, 0.05, strict) == (True, False)  # no observed aligned contact
+    assert normal_bad(top, grasp, 0.05, relaxed) == (False, True)
+    # Observed contacts must still be aligned: 30 deg off across the fully seen box fails either way.
+    assert normal_bad(full, angled, 0.078, relaxed)[0] and normal_bad(full, angled, 0.078, strict)[0]
+    # ... and the seen box's sides are aligned for the straight grasp either way.
+    assert not normal_bad(full, grasp, 0.05, relaxed)[0] and not normal_bad(full, grasp, 0.05, strict)[0]
+
+
 def test_support_plane_removes_grasps_reaching_below_the_table():
     """Filter (v): the table under the box (z = -0.03) is unseen, so only the plane can stop these."""
     down, up, across = np.array([0, 0, -1.0]), np.array([0, 0, 1.0]), np.array([0, 1.0, 0])
