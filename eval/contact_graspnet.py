@@ -77,8 +77,9 @@ class CGNConfig:
     """threshold: CGN's confidence threshold; max_points, voxel, scene_bounds: the cloud sent, made like
     SuperGrasp's Stage-2 scene cloud (`sgjax.pointcloud.scene_cloud`: optional (lo [3], hi [3]) crop,
     one point per voxel, then a seeded subsample); the method's factory crops to the benchmark's
-    workspace as SuperGrasp does; gripper_depth: CGN's hand-origin-to-fingertip distance (Panda, m); timeout_s: per request
-    (the first includes loading the model); spec: the sgjax gripper the poses are converted to."""
+    workspace as SuperGrasp does; gripper_depth: CGN's hand-origin-to-fingertip distance (Panda, m);
+    timeout_s: per request (the first includes loading the model); spec: the sgjax gripper the poses
+    are converted to."""
 
     threshold: float = 0.5
     max_points: int = 20000

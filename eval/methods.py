@@ -135,11 +135,10 @@ def _contact_graspnet(config=None) -> Method:
     from eval.contact_graspnet import CGNConfig, ContactGraspNetMethod
 
     if config is None:  # the benchmark's workspace, cropped as for SuperGrasp's scene cloud
-        from envs.scene import workspace_bounds
         from train.label import LabelConfig
 
         label = LabelConfig()
-        config = CGNConfig(voxel=label.voxel, scene_bounds=workspace_bounds(label.scene, label.workspace_margin))
+        config = CGNConfig(voxel=label.voxel, scene_bounds=label.scene_bounds)
     return ContactGraspNetMethod(config)
 
 

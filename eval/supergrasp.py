@@ -42,14 +42,13 @@ class PlannerMethod:
 
             db = load_database(DBConfig.small(), progress=False)
         if config is None:  # the Stage-2 scene cloud exactly as in labelling (train/label.py)
-            from envs.scene import workspace_bounds
             from train.label import LabelConfig
 
             label = LabelConfig()
             config = PlannerConfig(
                 max_scene_points=label.max_scene_points,
                 scene_voxel=label.voxel,
-                scene_bounds=workspace_bounds(label.scene, label.workspace_margin),
+                scene_bounds=label.scene_bounds,
             )
         self.config = dataclasses.replace(config, use_refinement=use_refinement)
         self.name = name

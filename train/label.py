@@ -77,6 +77,11 @@ class LabelConfig:
     def spec(self) -> GripperSpec:
         return self.stage1.spec
 
+    @property
+    def scene_bounds(self) -> tuple[tuple, tuple]:
+        """The Stage-2 scene cloud's crop: the workspace grown by workspace_margin (lo [3], hi [3])."""
+        return scene_lib.workspace_bounds(self.scene, self.workspace_margin)
+
     def to_json(self) -> str:
         return json.dumps(dataclasses.asdict(self), sort_keys=True, default=str)
 
@@ -124,8 +129,7 @@ def stage2_cloud(points: np.ndarray, config: LabelConfig, labels: np.ndarray | N
 
     points [N, 3] world -> (points [max_scene_points, 3], mask, labels or None); see scene_cloud.
     """
-    bounds = scene_lib.workspace_bounds(config.scene, config.workspace_margin)
-    return pointcloud.scene_cloud(points, config.max_scene_points, config.voxel, labels, bounds, seed)
+    return pointcloud.scene_cloud(points, config.max_scene_points, config.voxel, labels, config.scene_bounds, seed)
 
 
 _crop = jax.jit(crop_regions, static_argnames=("spec", "n_points"))
