@@ -473,16 +473,8 @@ class Planner:
     def _scene(self, scene: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
         """The fixed-size Stage-2 scene cloud: points [max_scene_points, 3] float32 and mask."""
         cfg = self.config
-        if cfg.scene_voxel > 0:
-            points, mask, _ = pointcloud.scene_cloud(scene, cfg.max_scene_points, cfg.scene_voxel, None, cfg.scene_bounds, seed)
-            return points, mask
-        if cfg.scene_bounds is not None:
-            lo, hi = (np.asarray(b) for b in cfg.scene_bounds)
-            scene = scene[np.all((scene >= lo) & (scene <= hi), axis=1)]
-        pts = pointcloud.downsample(scene, cfg.max_scene_points, seed)
-        out = np.zeros((cfg.max_scene_points, 3), np.float32)
-        out[: len(pts)] = pts
-        return out, np.arange(cfg.max_scene_points) < len(pts)
+        points, mask, _ = pointcloud.scene_cloud(scene, cfg.max_scene_points, cfg.scene_voxel, None, cfg.scene_bounds, seed)
+        return points, mask
 
     def _run(self, scene, objects, skipped, view, seed, start) -> Plan:
         cfg = self.config
