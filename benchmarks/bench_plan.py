@@ -1,6 +1,7 @@
 """Planner benchmark: Stage-1, Stage-2 and total wall time per plan on CPU, after compile (run by hand).
 
     python benchmarks/bench_plan.py [--repeats 5] [--small-db] [--model RUN_DIR] [--objects 5]
+                                    [--setting seen-10]
 
 Scene: a tabletop (30k points on a 60 cm table, 1 mm noise) with `--objects` boxes and cylinders
 (single-view clouds of superquadrics, 1500 points each), labelled per object; camera above the table.
@@ -9,6 +10,10 @@ one object. The model is the shipped default when it exists, else a light E-RNet
 (the timing does not depend on the weights; the decision does). The database is the default one from
 the cache (built on first use) unless --small-db. The 2 cores of the dev machine are shared: numbers
 vary with other jobs (the load average is printed). Prints a markdown table.
+
+--setting seen-10|seen-20|unseen-10: a decluttering benchmark scene instead (scene 7 of seed 0: the
+setting's objects dropped in MuJoCo, the fixed depth camera's labelled cloud, ~260k points), as
+`sgjax declutter` plans it (its table plane for filter (v)).
 """
 
 from __future__ import annotations
@@ -51,6 +56,21 @@ def make_scene(n_objects: int = 5, seed: int = 0, n_table: int = 30000, n_per_ob
     return np.concatenate(clouds), np.concatenate(labels)
 
 
+def declutter_scene(setting: str, index: int = 7):
+    """-> (points [N, 3], labels [N], camera [3], table plane (n, d)): a benchmark scene's first view."""
+    from envs import camera as camera_lib
+    from eval.declutter import DeclutterConfig, get_setting, make_benchmark_scene
+    from eval.supergrasp import table_plane
+    from envs.objects import load_object_set
+
+    cfg = DeclutterConfig()
+    s = get_setting(setting)
+    scene = make_benchmark_scene(load_object_set(s.object_set), s.n_objects, 0, index, cfg)
+    obs = camera_lib.observe(scene, cfg.camera, seed=0)
+    camera = np.asarray(cfg.camera.position, np.float64)
+    return obs.points, obs.point_labels, camera, table_plane(obs.points, obs.point_labels)
+
+
 def run(fn, repeats: int):
     """-> (first call seconds (compile + run), [Plan of each later call])."""
     t = time.perf_counter()
@@ -65,6 +85,7 @@ def main() -> None:
     parser.add_argument("--small-db", action="store_true")
     parser.add_argument("--model", help="an E-RNet run directory (default: the shipped model, else random light)")
     parser.add_argument("--objects", type=int, default=5)
+    parser.add_argument("--setting", help="a decluttering benchmark scene instead of the synthetic one")
     args = parser.parse_args()
 
     if args.model:
@@ -75,9 +96,15 @@ def main() -> None:
         except FileNotFoundError:
             model, model_name = ERNet(ERNetConfig.light(), rngs=nnx.Rngs(0)), "light, random weights"
     db = load_database(DBConfig.small() if args.small_db else DBConfig())
-    planner = Planner(model, db, PlannerConfig())
-    points, labels = make_scene(args.objects)
-    target = labels == 0
+    config, camera = PlannerConfig(), CAMERA
+    if args.setting:
+        points, labels, camera, plane = declutter_scene(args.setting)
+        config = PlannerConfig(support_plane=plane)
+        args.objects = len(np.unique(labels[labels >= 0]))
+    else:
+        points, labels = make_scene(args.objects)
+    planner = Planner(model, db, config)
+    target = labels == labels[labels >= 0].min()
 
     print(f"jax {jax.__version__}, {jax.devices()[0].platform}, load average {os.getloadavg()[0]:.1f}; "
           f"E-RNet {model_name}; database {len(db)} primitives; scene {len(points)} points, {args.objects} objects; "
@@ -85,8 +112,8 @@ def main() -> None:
     print("| call | first call (s) | Stage 1 (s) | Stage 2 (s) | total (s) | candidates | decision |")
     print("|---|---:|---:|---:|---:|---:|---|")
     cases = [
-        (f"plan, {args.objects} objects", lambda: planner.plan(points, labels, CAMERA, seed=0)),
-        ("plan_masked, 1 target", lambda: planner.plan_masked(points, target, CAMERA, seed=0)),
+        (f"plan, {args.objects} objects", lambda: planner.plan(points, labels, camera, seed=0)),
+        ("plan_masked, 1 target", lambda: planner.plan_masked(points, target, camera, seed=0)),
     ]
     for name, fn in cases:
         first, plans = run(fn, args.repeats)

@@ -153,10 +153,6 @@ def round_robin(counts, budget: int) -> tuple[np.ndarray, np.ndarray]:
     return obj, row
 
 
-def _usable(points: np.ndarray) -> bool:
-    return len(points) > 0 and int(pointcloud.cloud_status(points, np.ones(len(points), bool))) == pointcloud.OK
-
-
 class Stage1Candidates:
     """SuperGrasp's Stage 1 over every visible object of an observation, padded to max_candidates."""
 
@@ -182,25 +178,9 @@ class Stage1Candidates:
         if not objects:
             return _empty(slots, f"no object with at least {cfg.min_object_points} visible points", info)
         clouds = [points[labels == k] for k in objects]
-        scenes = []
-        for k in objects:
-            others = points[labels != k]
-            scenes.append(others if _usable(others) else (points if _usable(points) else None))
-        plane = table_plane(points, labels)
-        view = np.asarray(viewpoint, np.float64).reshape(3)
-        found = []
-        begin = 0
-        while begin < len(clouds):  # chunks of the configured sizes: a bounded number of compiles
-            left = len(clouds) - begin
-            size = max((b for b in cfg.stage1_batch_sizes if b <= left), default=cfg.stage1_batch_sizes[0])
-            part = clouds[begin : begin + size]
-            pad = size - len(part)
-            result = self.stage1.batch(
-                part + [np.zeros((1, 3))] * pad, scenes[begin : begin + size] + [None] * pad,
-                np.tile(view, (size, 1)), seed + begin, support_plane=plane,
-            )
-            found.extend(result[: len(part)])
-            begin += len(part)
+        scenes = [points[labels != k] for k in objects]
+        scenes = [others if len(others) else None for others in scenes]
+        found = self.stage1.chunked(clouds, scenes, viewpoint, seed, table_plane(points, labels), cfg.stage1_batch_sizes)
         sizes = [len(c) for c in found]
         info["stage1_candidates"] = int(sum(sizes))
         if not sum(sizes):

@@ -339,17 +339,9 @@ def _labels(labels, n: int) -> np.ndarray:
     return arr.astype(np.int64)
 
 
-def _usable(points: np.ndarray) -> bool:
-    return len(points) > 0 and int(pointcloud.cloud_status(points, np.ones(len(points), bool))) == pointcloud.OK
-
-
-def _obstacles(others: np.ndarray, scene: np.ndarray) -> np.ndarray | None:
-    """Stage 1's obstacle cloud for one object: the rest of the scene; when that cannot pass Stage 1's
-    cloud check (e.g. an ideal table plane is coplanar), the whole scene (the target's own points in
-    the gripper are a collision anyway); None when neither can."""
-    if _usable(others):
-        return others
-    return scene if _usable(scene) else None
+def _obstacles(others: np.ndarray) -> np.ndarray | None:
+    """Stage 1's obstacle cloud for one object: the rest of the scene (already checked), None if empty."""
+    return others if len(others) else None
 
 
 def _viewpoint(viewpoint) -> np.ndarray:
@@ -405,7 +397,7 @@ class Planner:
                 skipped.append({"label": label, "points": count, "candidates": 0,
                                 "reason": f"{count} visible points < min_object_points {self.config.min_object_points}"})
             else:
-                objects.append((label, scene[labels == label], _obstacles(scene[labels != label], scene)))
+                objects.append((label, scene[labels == label], _obstacles(scene[labels != label])))
         if not objects:
             if len(ids) == 0:
                 reason = "no object points: every label is < 0 (table/background)"
@@ -421,7 +413,7 @@ class Planner:
         start = time.perf_counter()
         target = _cloud(target_points, "target_points")
         scene = target if scene_points is None else _cloud(scene_points, "scene_points")
-        return self._plan_one(scene, target, scene if _usable(scene) else None, _viewpoint(viewpoint), seed, start)
+        return self._plan_one(scene, target, scene, _viewpoint(viewpoint), seed, start)
 
     def plan_masked(self, scene_points, target_mask, viewpoint=(0.0, 0.0, 0.0), seed: int = 0) -> Plan:
         """Plan for the object marked by target_mask bool [N] in scene_points [N, 3] (the other points are
@@ -431,7 +423,7 @@ class Planner:
         mask = np.asarray(target_mask)
         if mask.dtype != bool or mask.shape != (len(scene),):
             raise ValueError(f"the target mask must be bool with shape [N] = ({len(scene)},), got {mask.dtype} {mask.shape}")
-        return self._plan_one(scene, scene[mask], _obstacles(scene[~mask], scene), _viewpoint(viewpoint), seed, start)
+        return self._plan_one(scene, scene[mask], _obstacles(scene[~mask]), _viewpoint(viewpoint), seed, start)
 
     # -- internals ------------------------------------------------------------------------------
 
@@ -452,23 +444,8 @@ class Planner:
         return Plan(None, None, None, 0.0, None, None, None, reason, n, timing, list(candidates), scores, None, objects)
 
     def _stage1(self, clouds, obstacles, view, seed) -> list[Candidates]:
-        """Stage1.batch over chunks of the configured sizes: the largest size that fits the objects left,
-        and the smallest size padded with dummy clouds (reported bad, dropped) when none fits."""
-        sizes = self.config.stage1_batch_sizes
-        out: list[Candidates] = []
-        begin = 0
-        while begin < len(clouds):
-            left = len(clouds) - begin
-            size = max((b for b in sizes if b <= left), default=sizes[0])
-            part = list(clouds[begin : begin + size])
-            pad = size - len(part)
-            scenes = list(obstacles[begin : begin + size]) + [None] * pad
-            args = (part + [np.zeros((1, 3))] * pad, scenes, np.tile(view, (size, 1)), seed + begin)
-            plane = self.config.support_plane
-            result = self.stage1.batch(*args) if plane is None else self.stage1.batch(*args, support_plane=plane)
-            out.extend(result[: len(part)])
-            begin += len(part)
-        return out
+        cfg = self.config
+        return self.stage1.chunked(clouds, obstacles, view, seed, cfg.support_plane, cfg.stage1_batch_sizes)
 
     def _scene(self, scene: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
         """The fixed-size Stage-2 scene cloud: points [max_scene_points, 3] float32 and mask."""

@@ -75,17 +75,27 @@ def cloud_status(points, mask, xp=np):
 
 def as_cloud(points, name: str = "cloud") -> np.ndarray:
     """Validate an array-like as one cloud: -> float64 [N, 3]; raises CloudError naming the problem."""
+    arr = as_points(points, name)
+    if arr.shape[0] == 0:
+        raise CloudError(f"{name}: the cloud is empty")
+    code = int(cloud_status(arr, np.ones(len(arr), bool)))
+    if code != OK:
+        raise CloudError(f"{name}: {describe_status(code)} ({len(arr)} points)")
+    return arr
+
+
+def as_points(points, name: str = "points") -> np.ndarray:
+    """Validate an array-like as a set of points: -> float64 [N, 3] (N may be 0); raises CloudError for a
+    non-numeric array, a wrong shape or NaN/inf. No shape test (a flat table is a fine obstacle cloud)."""
     try:
         arr = np.asarray(points, dtype=np.float64)
     except (TypeError, ValueError) as exc:
         raise CloudError(f"{name}: not a numeric array ({exc})") from None
     if arr.ndim != 2 or arr.shape[-1] != 3:
         raise CloudError(f"{name}: expected an array of shape (N, 3), got {arr.shape}")
-    if arr.shape[0] == 0:
-        raise CloudError(f"{name}: the cloud is empty")
-    code = int(cloud_status(arr, np.ones(len(arr), bool)))
-    if code != OK:
-        raise CloudError(f"{name}: {describe_status(code)} ({len(arr)} points)")
+    bad = ~np.all(np.isfinite(arr), axis=1)
+    if bad.any():
+        raise CloudError(f"{name}: {int(bad.sum())} of {len(arr)} points hold NaN or inf coordinates")
     return arr
 
 

@@ -172,11 +172,12 @@ def _pipeline(obj, obj_mask, scene, scene_mask, viewpoint, plane, scale, db: Mat
         local = local.at[..., 0].add(-shift[..., None])
     normals = estimate_normals(obj, obj_mask, viewpoint, cfg.filter.normal_neighbours)
 
-    def one(p, w, v, o, om, nrm, s, sm, pl, sc, lc):
+    def one(p, w, v, o, om, nrm, s, sm, pl, sc, lc, sq):
         s, sm = (s, sm) if has_scene else (None, None)
-        return coarse_filter(p, w, v, o, om, nrm, s, sm, cfg.spec, cfg.filter, pl, sc, object_local=lc)
+        return coarse_filter(p, w, v, o, om, nrm, s, sm, cfg.spec, cfg.filter, pl, sc, object_local=lc, superquadric=sq)
 
-    filt = jax.vmap(one)(poses, widths, valid, obj, obj_mask, normals, scene, scene_mask, plane, scale, local)
+    args = (poses, widths, valid, obj, obj_mask, normals, scene, scene_mask, plane, scale, local, fit.superquadric)
+    filt = jax.vmap(one)(*args)
     return {
         "fit": fit,
         "poses": poses,
@@ -249,8 +250,10 @@ class Stage1:
                 raise ValueError(f"got {b} object clouds but {len(scenes)} scene clouds")
             for i, s in enumerate(scenes):
                 if s is not None:
-                    s = pointcloud.as_cloud(s, f"scene cloud {i}")
-                    scene[i], scene_mask[i] = self._crop_scene(s[np.all(np.isfinite(s), 1)], clouds[i], seed + i, plane[i])
+                    # Obstacles need no shape test (a table alone is flat), only finite points.
+                    s = pointcloud.as_points(s, f"scene cloud {i}")
+                    if len(s):
+                        scene[i], scene_mask[i] = self._crop_scene(s, clouds[i], seed + i, plane[i])
         view = np.zeros((b, 3), np.float32) if viewpoints is None else np.asarray(viewpoints, np.float32).reshape(b, 3)
         # Filter (ii) counts the observed points between the fingers, not the subsample's.
         scale = np.array([len(c) for c in clouds], np.float32) / np.maximum(obj_mask.sum(1), 1)
@@ -259,6 +262,33 @@ class Stage1:
         )
         out = jax.tree_util.tree_map(np.asarray, out)
         return [_empty({"transferred": 0, "kept": 0}, bad[i], None) if i in bad else self._unpack(out, i) for i in range(b)]
+
+    def chunked(self, objects, scenes, viewpoint, seed: int = 0, support_plane=None, sizes=(4,)) -> list[Candidates]:
+        """`batch` over any number of objects in chunks of the given batch sizes, so that a scene of any
+        size compiles at most len(sizes) shapes: each chunk takes the largest size that fits the objects
+        left, and the smallest size is padded with dummy clouds (reported bad, dropped) when none fits.
+
+        objects: sequence of clouds [N_i, 3]; scenes: a sequence of the same length (items None or
+        [S_i, 3]); viewpoint [3] (shared); seed, support_plane as in `batch`.
+        """
+        sizes = sorted({int(b) for b in sizes})
+        if not sizes or sizes[0] < 1:
+            raise ValueError(f"batch sizes must be positive integers, got {sizes}")
+        if len(scenes) != len(objects):
+            raise ValueError(f"got {len(objects)} object clouds but {len(scenes)} scene clouds")
+        view = np.asarray(viewpoint, np.float64).reshape(3)
+        out: list[Candidates] = []
+        begin = 0
+        while begin < len(objects):
+            left = len(objects) - begin
+            size = max((b for b in sizes if b <= left), default=sizes[0])
+            part = list(objects[begin : begin + size])
+            pad = size - len(part)
+            result = self.batch(part + [np.zeros((1, 3))] * pad, list(scenes[begin : begin + size]) + [None] * pad,
+                                np.tile(view, (size, 1)), seed + begin, support_plane)
+            out.extend(result[: len(part)])
+            begin += len(part)
+        return out
 
     def _unpack(self, out: dict, i: int) -> Candidates:
         fit = jax.tree_util.tree_map(lambda x: x[i], out["fit"])

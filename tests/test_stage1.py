@@ -11,6 +11,7 @@ from scipy.spatial.transform import Rotation
 from sgjax.coarse_filter import (
     FilterConfig,
     coarse_filter,
+    superquadric_contact_cos,
     estimate_normals,
     below_plane,
     removal_counts,
@@ -197,28 +198,59 @@ def test_each_filter_removes_exactly_its_case():
     assert not bool(padded.keep[0])
 
 
-def test_hidden_contacts_are_not_evidence_against_a_grasp_when_allowed():
+def test_hidden_contacts_are_judged_as_configured():
     """Filter (iii) on a lying flat box seen only from above: the fingers' contact sides are hidden."""
-    full = _box_cloud(half=(0.05, 0.015, 0.0075))  # 10 x 3 x 1.5 cm, like a knife's handle
+    half = (0.05, 0.015, 0.0075)  # 10 x 3 x 1.5 cm, like a knife's handle
+    full = _box_cloud(half=half)
     top = full[full[:, 2] > 0.0074]  # the top face only, normals up
     down = np.array([0, 0, -1.0])
     grasp = grasp_frame(down, np.array([0, 1.0, 0]), np.array([0, 0, 0.046]))[None]  # tips 4 mm above the bottom
     angled = grasp_frame(down, np.array([0.5, np.sqrt(0.75), 0]), np.array([0, 0, 0.046]))[None]
-    strict, relaxed = FilterConfig(), FilterConfig(require_observed_contact=False)
+    shallow = grasp_frame(down, np.array([0, 1.0, 0]), np.array([0, 0, 0.0555]))[None]  # tips 2 mm into the top
+    box_sq = Superquadric.create(half, (0.1, 0.1))
+    round_sq = Superquadric.create(half, (1.0, 1.0))  # the ellipsoid: sides curve away from the closing axis
+    modes = {m: FilterConfig(hidden_contacts=m) for m in ("reject", "accept", "superquadric")}
 
-    def normal_bad(cloud, pose, width, cfg):
+    def normal_bad(cloud, pose, width, mode, sq=box_sq):
         mask = jnp.ones(len(cloud), bool)
         normals = estimate_normals(jnp.asarray(cloud), mask, jnp.asarray([0.0, 0.0, 1.0]))
         res = coarse_filter(jnp.asarray(pose, jnp.float32), jnp.full(1, width), jnp.ones(1, bool), jnp.asarray(cloud),
-                            mask, normals, cfg=cfg)
-        return bool(res.normal_angle[0]), bool(res.keep[0])
+                            mask, normals, cfg=modes[mode], superquadric=sq)
+        return bool(res.normal_angle[0])
 
-    assert normal_bad(top, grasp, 0.05, strict) == (True, False)  # no observed aligned contact
-    assert normal_bad(top, grasp, 0.05, relaxed) == (False, True)
-    # Observed contacts must still be aligned: 30 deg off across the fully seen box fails either way.
-    assert normal_bad(full, angled, 0.078, relaxed)[0] and normal_bad(full, angled, 0.078, strict)[0]
-    # ... and the seen box's sides are aligned for the straight grasp either way.
-    assert not normal_bad(full, grasp, 0.05, relaxed)[0] and not normal_bad(full, grasp, 0.05, strict)[0]
+    assert normal_bad(top, grasp, 0.05, "reject")  # no observed aligned contact
+    assert not normal_bad(top, grasp, 0.05, "accept")
+    # The fitted shape's sides at the fingers' line are square to the closing axis ...
+    assert not normal_bad(top, grasp, 0.05, "superquadric")
+    assert not normal_bad(top, grasp, 0.05, "superquadric", round_sq)  # ... the ellipsoid's too, at its widest
+    # ... but 30 deg off across the box, or fingertips on the ellipsoid's curved top, are not.
+    assert normal_bad(top, angled, 0.078, "superquadric")
+    assert normal_bad(top, shallow, 0.05, "superquadric", round_sq)
+    assert not normal_bad(top, shallow, 0.05, "superquadric")  # the box's side is flat up to its top edge
+    # Observed contacts must still be aligned: 30 deg off across the fully seen box fails in every mode.
+    assert all(normal_bad(full, angled, 0.078, m) for m in modes)
+    # ... and the seen box's sides are aligned for the straight grasp in every mode.
+    assert not any(normal_bad(full, grasp, 0.05, m) for m in modes)
+    # Without the fit, nothing can judge hidden contacts: removed, as in "reject".
+    assert normal_bad(top, grasp, 0.05, "superquadric", None) and not normal_bad(full, grasp, 0.05, "superquadric", None)
+    with pytest.raises(ValueError, match="hidden_contacts"):
+        FilterConfig(hidden_contacts="maybe")
+
+
+def test_superquadric_contact_normals_follow_the_closing_line():
+    """superquadric_contact_cos against closed forms: a sphere's normal at a line offset by h from the
+    centre is sqrt(r^2 - h^2) / r along the line; a line that misses gives 0."""
+    r = 0.02
+    sphere = Superquadric.create((r, r, r), (1.0, 1.0), translation=jnp.asarray([0.0, 0.0, 0.0]))
+    down = np.array([0, 0, -1.0])
+    # Gripper origin above the sphere: its centre lies at gripper z = 0.06 - 0 > finger_length, so the
+    # line is clipped to the fingertips (z = 0.05), i.e. at height 0.06 - 0.05 = 0.01 above the centre.
+    poses = np.stack([grasp_frame(down, np.array([0, 1.0, 0]), np.array([0, 0, h])) for h in (0.03, 0.06, 0.08)])
+    cos = np.asarray(superquadric_contact_cos(sphere, jnp.asarray(poses, jnp.float32), jnp.full(3, 0.06), GripperSpec()))
+    expected = np.sqrt(r**2 - 0.01**2) / r
+    np.testing.assert_allclose(cos[:, 0], [1.0, 1.0], atol=1e-3)  # through the centre
+    np.testing.assert_allclose(cos[:, 1], [expected, expected], atol=2e-3)
+    np.testing.assert_array_equal(cos[:, 2], [0.0, 0.0])  # tips 1 cm above the sphere
 
 
 def test_support_plane_removes_grasps_reaching_below_the_table():
@@ -330,6 +362,26 @@ def test_batch_reports_bad_clouds_without_raising(stage):
     assert len(out[0]) > 0
     assert len(out[1]) == 0 and "too few" in out[1].reason
     assert len(out[2]) == 0 and "coplanar" in out[2].reason
+
+
+def test_chunked_is_batch_over_chunks_and_obstacles_need_no_shape(stage):
+    box, _ = single_view(Primitive("cuboid", (0.09, 0.054, 0.027)))
+    can, _ = single_view(Primitive("cylinder", (0.045, 0.045, 0.1)))
+    xs, ys = np.meshgrid(np.linspace(-0.2, 0.4, 60), np.linspace(-0.3, 0.3, 60))
+    table = np.stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)], 1)  # flat: fine as obstacles
+    objects, scenes = [box, can, box + 0.001], [table, None, table]
+    chunks = stage.chunked(objects, scenes, CAMERA, seed=3, sizes=(2,))  # 2 + (1 padded to 2)
+    first = stage.batch(objects[:2], scenes[:2], np.tile(CAMERA, (2, 1)), 3)
+    last = stage.batch([objects[2], np.zeros((1, 3))], [table, None], np.tile(CAMERA, (2, 1)), 5)
+    for got, want in zip(chunks, first + last[:1]):
+        np.testing.assert_array_equal(got.poses, want.poses)
+    assert len(chunks) == 3 and chunks[0].counts["collision_scene"] > 0
+    with pytest.raises(ValueError, match="batch sizes"):
+        stage.chunked(objects, scenes, CAMERA, sizes=())
+    with pytest.raises(ValueError, match="3 object clouds but 2 scene clouds"):
+        stage.chunked(objects, scenes[:2], CAMERA)
+    with pytest.raises(CloudError, match="scene cloud 0: 1 of .* NaN"):
+        stage.batch([box], [np.r_[table, [[np.nan, 0, 0]]]])
 
 
 def test_empty_result_explains_which_filter_removed_what(stage):
