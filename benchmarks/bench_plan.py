@@ -86,6 +86,7 @@ def main() -> None:
     parser.add_argument("--model", help="an E-RNet run directory (default: the shipped model, else random light)")
     parser.add_argument("--objects", type=int, default=5)
     parser.add_argument("--setting", help="a decluttering benchmark scene instead of the synthetic one")
+    parser.add_argument("--batch-sizes", default="4", help="Stage-1 batch sizes, comma-separated (PlannerConfig)")
     args = parser.parse_args()
 
     if args.model:
@@ -96,10 +97,11 @@ def main() -> None:
         except FileNotFoundError:
             model, model_name = ERNet(ERNetConfig.light(), rngs=nnx.Rngs(0)), "light, random weights"
     db = load_database(DBConfig.small() if args.small_db else DBConfig())
-    config, camera = PlannerConfig(), CAMERA
+    sizes = tuple(int(b) for b in args.batch_sizes.split(","))
+    config, camera = PlannerConfig(stage1_batch_sizes=sizes), CAMERA
     if args.setting:
         points, labels, camera, plane = declutter_scene(args.setting)
-        config = PlannerConfig(support_plane=plane)
+        config = PlannerConfig(support_plane=plane, stage1_batch_sizes=sizes)
         args.objects = len(np.unique(labels[labels >= 0]))
     else:
         points, labels = make_scene(args.objects)
@@ -108,6 +110,7 @@ def main() -> None:
 
     print(f"jax {jax.__version__}, {jax.devices()[0].platform}, load average {os.getloadavg()[0]:.1f}; "
           f"E-RNet {model_name}; database {len(db)} primitives; scene {len(points)} points, {args.objects} objects; "
+          f"Stage-1 batch sizes {sizes}; "
           f"best and median of {args.repeats} calls after compile\n")
     print("| call | first call (s) | Stage 1 (s) | Stage 2 (s) | total (s) | candidates | decision |")
     print("|---|---:|---:|---:|---:|---:|---|")
