@@ -2,6 +2,7 @@
 
     python benchmarks/bench_sim.py [--trials 128] [--nthread 2] [--mjx-trials 8] [--mjx-objects 2]
                                    [--objects tiny|seen|...] [--skip-cpu | --skip-mjx]
+                                   [--mjx-backend mjx|mjx-jax|mjx-warp]
 
 Trials: top-down grasps of every object of a tiny-set scene (`envs.simple_grasps`), jittered by a few
 millimetres and degrees so that they mix successes, collisions and drops, repeated up to --trials.
@@ -56,6 +57,7 @@ def main() -> None:
     parser.add_argument("--mjx-trials", type=int, default=8)
     parser.add_argument("--mjx-objects", type=int, default=2, help="cubes in the MJX reference scene")
     parser.add_argument("--skip-mjx", action="store_true")
+    parser.add_argument("--mjx-backend", default="mjx", help="mjx (warp when installed, else jax), mjx-jax or mjx-warp")
     parser.add_argument("--skip-cpu", action="store_true", help="only the MJX row")
     parser.add_argument(
         "--objects", default="tiny", help="object set of the C-engine scenes (tiny: convex shapes; seen: YCB + procedural, prepared on first use)"
@@ -119,12 +121,13 @@ def mjx_table(objects, args, steps: int) -> None:
     targets, poses, widths = candidates(scene, m)
     config = trial.TrialConfig(early_stop=False)
     reference = trial.run_trials(scene, targets, poses, widths, config=config, nthread=args.nthread)
-    first, _, _ = timed(lambda: trial.run_trials(scene, targets, poses, widths, backend="mjx"))
-    seconds, cpu, result = timed(lambda: trial.run_trials(scene, targets, poses, widths, backend="mjx"))
+    run = functools.partial(trial.run_trials, scene, targets, poses, widths, backend=args.mjx_backend)
+    first, _, _ = timed(run)
+    seconds, cpu, result = timed(run)
     agree = float(np.mean(result.outcome == reference.outcome))
     counts = ", ".join(f"{k} {v}" for k, v in result.counts().items() if v)
     print(
-        f"| mjx ({jax.devices()[0].platform}) | {args.mjx_objects} cubes | {m} | full, compile {first - seconds:.0f} s | "
+        f"| {args.mjx_backend} ({jax.devices()[0].platform}) | {args.mjx_objects} cubes | {m} | full, compile {first - seconds:.0f} s | "
         f"{seconds:.2f} | {m / seconds:.1f} | {m * steps / seconds:.0f} | {m / cpu:.1f} | "
         f"{counts}; same outcome as cpu: {agree:.0%} |"
     )

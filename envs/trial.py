@@ -2,8 +2,9 @@
 
 A trial is an open-loop schedule over time, computed once from (pose, width, GripperSpec, TrialConfig)
 by `make_schedule` and rolled out for many grasps in parallel from the same settled scene state, by
-the C engine (`backend="cpu"`, mujoco.batch) or MJX (`backend="mjx"`, jit + vmap + scan). Both backends
-return the same per-phase summary (`Rollout`), which `classify` turns into outcomes.
+the C engine (`backend="cpu"`, mujoco.batch) or MJX (`backend="mjx"`, jit + vmap + scan; its warp
+implementation on a GPU where `warp-lang` is installed, else its JAX one; "mjx-jax" / "mjx-warp" pick one). All
+backends return the same per-phase summary (`Rollout`), which `classify` turns into outcomes.
 
 Phases (defaults; 2.04 s simulated, 1020 steps at 2 ms):
   PREGRASP  0.04 s  gripper placed `pregrasp_distance` behind the grasp along -approach, fingers
@@ -31,6 +32,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import functools
 
 import mujoco
 import numpy as np
@@ -545,6 +547,17 @@ def classify(judge: Judge, rollout: Rollout) -> TrialResult:
 # Entry points.
 
 
+BACKENDS = ("cpu", "mjx", "mjx-jax", "mjx-warp")
+_MJX_IMPL = {"mjx": "auto", "mjx-jax": "jax", "mjx-warp": "warp"}
+
+
+def check_backend(backend: str) -> str:
+    """-> backend, or ValueError naming the valid ones."""
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {', '.join(repr(b) for b in BACKENDS)}, got {backend!r}")
+    return backend
+
+
 def run_trials(
     scene: scene_lib.Scene,
     targets,
@@ -558,7 +571,8 @@ def run_trials(
     """Simulate grasps (poses[M, 4, 4], widths[M]) on target objects targets[M] (or one int) of `scene`.
 
     Every trial starts from the scene's settled state. backend: "cpu" (C engine, mujoco.batch on
-    `nthread` threads, 0 = all cores) or "mjx" (JAX; jit-compiled once per scene model and batch size).
+    `nthread` threads, 0 = all cores) or "mjx" (jit-compiled once per scene model and batch size; the
+    warp implementation on a GPU where warp-lang is installed, else JAX), "mjx-jax" or "mjx-warp".
     spec defaults to the scene's GripperSpec (the one the simulated gripper was built from).
     Raises ValueError for bad poses (shape, non-finite, not rigid), widths out of [0, max_opening],
     targets out of range or removed, or an unknown backend.
@@ -568,12 +582,12 @@ def run_trials(
         raise ValueError("spec differs from the GripperSpec the scene's gripper was built from")
     poses, widths = check_grasps(poses, widths, spec)
     targets = _targets(targets, len(poses), scene)
-    if backend == "cpu":
+    if check_backend(backend) == "cpu":
         from envs.backend_cpu import rollout_cpu as rollout_fn
-    elif backend == "mjx":
-        from envs.backend_mjx import rollout_mjx as rollout_fn
     else:
-        raise ValueError(f"backend must be 'cpu' or 'mjx', got {backend!r}")
+        from envs.backend_mjx import resolve_impl, rollout_mjx
+
+        rollout_fn = functools.partial(rollout_mjx, impl=resolve_impl(_MJX_IMPL[backend]))
 
     lay = layout(scene)
     results = []

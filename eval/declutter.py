@@ -77,8 +77,7 @@ class DeclutterConfig:
     def __post_init__(self):
         if self.extra_attempts < 0:
             raise ValueError(f"extra_attempts must be >= 0, got {self.extra_attempts}")
-        if self.backend not in ("cpu", "mjx"):
-            raise ValueError(f"backend must be 'cpu' or 'mjx', got {self.backend!r}")
+        trial_lib.check_backend(self.backend)
 
 
 def scene_seed(seed: int, index: int) -> int:

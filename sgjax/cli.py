@@ -14,6 +14,9 @@ from typing import Sequence
 
 from sgjax.files import atomic_write
 
+# envs.trial.BACKENDS, spelled out here so that the CLI imports no simulator before a command runs.
+BACKEND_HELP = ("grasp trial engine: cpu (default; MuJoCo's C engine), mjx (MJX: its warp implementation on a GPU "
+                "where warp-lang is installed, else its JAX one), mjx-jax, mjx-warp")
 EXAMPLE_SHAPES = {
     # name: (semi-axes in metres, (eps1, eps2))
     "box": ((0.04, 0.02, 0.06), (0.1, 0.1)),  # graspable across its 4 cm side with an 8 cm stroke
@@ -478,7 +481,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scenes", type=int, required=True, help="scenes 0..N-1 (rerun with a larger N to extend)")
     p.add_argument("--out", required=True, help="directory of .npz shards (train/dataset.py format)")
     p.add_argument("--objects", default="seen", help="object set name or a folder of meshes (default: seen)")
-    p.add_argument("--backend", choices=("cpu", "mjx"), default="cpu", help="trial engine (default: cpu)")
+    p.add_argument("--backend", default="cpu", help=BACKEND_HELP)
     p.add_argument("--n-objects", type=int, default=5, help="objects per scene (paper: 5)")
     p.add_argument("--grasps-per-scene", type=int, default=16, help="candidates executed per scene (+3 refinements each)")
     p.add_argument("--seed", type=int, default=0)
@@ -507,7 +510,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="the method's network run directory: E-RNet (supergrasp*, gpd+s2) or PointNetGPD (*pointnetgpd)",
     )
     p.add_argument("--small-db", action="store_true", help="the small primitive database (Stage-1 methods; tests)")
-    p.add_argument("--backend", choices=("cpu", "mjx"), default="cpu", help="grasp trial simulator (default cpu)")
+    p.add_argument("--backend", default="cpu", help=BACKEND_HELP)
     p.add_argument("--pictures", type=int, default=3, help="draw the first this many scenes (default 3)")
     p.add_argument("--json", action="store_true", help='print {"GSR", "TSR", "GA", "scenes", ...} as JSON')
     p.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -191,8 +191,45 @@ def test_cpu_and_mjx_backends_agree(assets):
     scene = scene_lib.arrange_scene([assets["box_a"]], [[0, 0, 0.026, *IDENTITY]])
     poses, widths = np.stack([ACROSS_X, IN_THE_AIR]), [0.065, 0.065]
     cpu = trial.run_trials(scene, 0, poses, widths, backend="cpu")
-    mjx = trial.run_trials(scene, 0, poses, widths, backend="mjx")
+    mjx = trial.run_trials(scene, 0, poses, widths, backend="mjx-jax")
     assert cpu.outcome.tolist() == [Outcome.SUCCESS, Outcome.DROPPED_LIFT]
     np.testing.assert_array_equal(mjx.outcome, cpu.outcome)
     np.testing.assert_array_equal(mjx.held, cpu.held)
     np.testing.assert_allclose(mjx.object_pose[0, :, :3], cpu.object_pose[0, :, :3], atol=0.01)
+
+
+@pytest.mark.slow
+def test_cpu_and_mjx_warp_agree(pair):
+    """MJX's warp implementation (on CPU here; needs warp-lang) gives the C engine's outcomes too, with
+    each trial counting only its own world's contacts in warp's shared contact buffer: the grasp through
+    the neighbour collides, and the trial next to it in the batch must not see that contact."""
+    from envs.backend_mjx import warp_available
+
+    if not warp_available():
+        pytest.skip("warp-lang is not installed")
+    poses, widths = np.stack([ACROSS_X, ACROSS_X, IN_THE_AIR]), [0.075, 0.065, 0.065]
+    cpu = trial.run_trials(pair, 0, poses, widths, backend="cpu")
+    warp = trial.run_trials(pair, 0, poses, widths, backend="mjx-warp")
+    assert cpu.outcome.tolist() == [Outcome.COLLISION_APPROACH, Outcome.SUCCESS, Outcome.DROPPED_LIFT]
+    np.testing.assert_array_equal(warp.outcome, cpu.outcome)
+    # The C engine stops the decided collision early (its later phases are not simulated); MJX runs on.
+    np.testing.assert_array_equal(warp.held[1:], cpu.held[1:])
+    np.testing.assert_allclose(warp.object_pose[1, :, :3], cpu.object_pose[1, :, :3], atol=0.01)
+
+
+def test_backend_names_are_checked():
+    from envs.backend_mjx import resolve_impl, warp_available
+
+    with pytest.raises(ValueError, match="backend must be one of 'cpu', 'mjx', 'mjx-jax', 'mjx-warp'"):
+        trial.check_backend("gpu")
+    with pytest.raises(ValueError, match="impl must be"):
+        resolve_impl("cuda")
+    assert resolve_impl("jax") == "jax"
+    import jax
+
+    assert resolve_impl("auto") == ("warp" if warp_available() and jax.default_backend() == "gpu" else "jax")
+    if warp_available():
+        assert resolve_impl("warp") == "warp"
+    else:
+        with pytest.raises(ValueError, match="needs the warp-lang package"):
+            resolve_impl("warp")

@@ -31,7 +31,7 @@ import numpy as np
 
 from envs import camera as camera_lib
 from envs import scene as scene_lib
-from envs.trial import Outcome, TrialConfig, run_grasp_with_refinements
+from envs.trial import Outcome, TrialConfig, check_backend, run_grasp_with_refinements
 from sgjax import pointcloud
 from sgjax.ernet import crop_regions
 from sgjax.files import atomic_write_text
@@ -262,8 +262,7 @@ def label(
     """
     if n_scenes < 1:
         raise ValueError(f"n_scenes must be >= 1, got {n_scenes}")
-    if backend not in ("cpu", "mjx"):
-        raise ValueError(f"backend must be 'cpu' or 'mjx', got {backend!r}")
+    check_backend(backend)
     out_dir = os.fspath(out_dir)
     _check_config(out_dir, config)
     if objects is None:
