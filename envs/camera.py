@@ -1,9 +1,10 @@
 """One fixed depth camera: ray-cast depth with per-pixel object ids, scene and object clouds.
 
 Depth is computed by casting one ray per pixel centre through MuJoCo's exact ray-geom intersection
-(`mujoco.mj_multiRay`, C engine) against the table and the objects' visual meshes; the gripper, the
-collision hulls and parked objects are never seen. One observation per scene costs ~0.1 s at 640x480,
-so the camera stays on the CPU on every backend.
+(`mujoco.mj_multiRay`, C engine; or `mjx.ray` on the JAX path, `backend="mjx"`) against the table and
+the objects' visual meshes; the gripper, the collision hulls and parked objects are never seen. One
+observation per scene costs ~0.1 s at 640x480 on the C engine, so labelling and the benchmark use it on
+every trial backend; MJX's ray tests every triangle of every mesh per ray (a GPU's job).
 
 Camera frame (OpenCV): x right, y down, z forward along the optical axis; `Observation.extrinsic` maps
 camera-frame points to the world. Depth is the z coordinate in that frame (not the ray length).
@@ -135,10 +136,12 @@ def observe(
     config: CameraConfig = CameraConfig(),
     seed: int = 0,
     data: mujoco.MjData | None = None,
+    backend: str = "cpu",
 ) -> Observation:
     """Render the depth camera on `scene` (at its settled state, or at `data` when given).
 
-    seed drives the depth noise (ignored without noise). Returns an Observation.
+    seed drives the depth noise (ignored without noise). backend: "cpu" (mj_multiRay) or "mjx"
+    (mjx.ray; the same hits). Returns an Observation.
     """
     model = scene.model
     if data is None:
@@ -150,9 +153,16 @@ def observe(
     groups = np.zeros(mujoco.mjNGROUP, np.uint8)
     groups[[scene_lib.TABLE_GROUP, scene_lib.VISUAL_GROUP]] = 1  # not the hulls, not the gripper
     origin = np.asarray(config.position, np.float64)
-    mujoco.mj_multiRay(
-        model, data, origin, directions.ravel(), groups, True, -1, geomid, dist, None, n, config.max_depth
-    )
+    if backend == "cpu":
+        mujoco.mj_multiRay(
+            model, data, origin, directions.ravel(), groups, True, -1, geomid, dist, None, n, config.max_depth
+        )
+    elif backend == "mjx":
+        from envs.backend_mjx import cast_rays
+
+        geomid, dist = cast_rays(scene, data, origin, directions, groups, config.max_depth)
+    else:
+        raise ValueError(f"camera backend must be 'cpu' or 'mjx', got {backend!r}")
     hit = (geomid >= 0) & (dist >= 0)
     depth = np.where(hit, dist * cos_axis, 0.0)
     labels = np.where(hit, scene.geom_object()[np.maximum(geomid, 0)], NO_RETURN).astype(np.int32)

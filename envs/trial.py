@@ -165,7 +165,8 @@ class Rollout:
     end_contacts: [M, P, S] the counts at the last step of each phase.
     end_qpos: [M, P, nq] joint positions at the end of each phase.
     max_speed: [M, P] fastest linear speed of any present object on or above the table during the phase.
-    ok: [M] False where the engine failed, warned, stopped early or produced a NaN.
+    ok: [M] False where the engine failed, warned or stopped early, or (MJX warp) lost contacts; NaNs
+        are found per phase from end_qpos / max_speed.
     """
 
     contact_max: np.ndarray
@@ -513,7 +514,11 @@ def object_in_gripper(end_qpos: np.ndarray, targets: np.ndarray, lay: Layout) ->
 
 
 def classify(judge: Judge, rollout: Rollout) -> TrialResult:
-    """Turn per-phase summaries into Outcomes: the first failing phase decides, INVALID overrides."""
+    """Turn per-phase summaries into Outcomes: the first failing phase decides, INVALID overrides.
+
+    Instability (NaN, an object faster than max_object_speed) counts up to the deciding phase only (the
+    first failing phase, else the last): what the simulator does after a decided failure cannot change
+    it, and the C engine with early_stop does not even simulate it while MJX always does."""
     lay, targets = judge.lay, judge.targets
     m = len(targets)
     rows = np.arange(m)
@@ -522,14 +527,17 @@ def classify(judge: Judge, rollout: Rollout) -> TrialResult:
     g = lay.gripper_qpos
     outcome = np.full(m, Outcome.SUCCESS, np.int8)
     undecided = np.ones(m, bool)
+    decided_at = np.full(m, len(Phase) - 1)
     for phase in Phase:
         failed = judge.failed(phase, rollout, rows)
         outcome[undecided & failed] = PHASE_FAILURE.get(phase, Outcome.INVALID)
+        decided_at[undecided & failed] = phase
         undecided &= ~failed
     max_speed = rollout.max_speed.max(axis=1)
-    invalid = ~rollout.ok | ~np.isfinite(rollout.end_qpos).all(axis=(1, 2))
-    invalid |= ~(max_speed <= judge.config.max_object_speed)
-    outcome[invalid] = Outcome.INVALID
+    counted = np.arange(len(Phase))[None] <= decided_at[:, None]  # [M, P] phases up to the decision
+    finite = np.where(counted, np.isfinite(rollout.end_qpos).all(axis=2), True).all(axis=1)
+    fast = ~(np.where(counted, rollout.max_speed, 0.0).max(axis=1) <= judge.config.max_object_speed)
+    outcome[~rollout.ok | ~finite | fast] = Outcome.INVALID
     return TrialResult(
         outcome=outcome,
         object_pose=object_pose,

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -81,6 +83,31 @@ def test_grasp_through_a_neighbour_is_a_collision(pair):
     # Width 7.5 cm puts the right finger (x = 3.75 ... 4.75 cm) into the neighbour (x >= 4.5 cm).
     result = trial.run_trials(pair, 0, np.stack([ACROSS_X, ACROSS_X]), [0.075, 0.065])
     assert result.outcome.tolist() == [Outcome.COLLISION_APPROACH, Outcome.SUCCESS]
+
+
+def test_instability_after_a_decided_failure_does_not_change_it(pair):
+    """INVALID counts NaNs and flung objects up to the deciding phase only (MJX simulates every phase
+    of a failed trial, the C engine with early_stop does not)."""
+    from envs.backend_cpu import rollout_cpu
+
+    config = trial.TrialConfig(early_stop=False)
+    poses, widths = np.stack([ACROSS_X, ACROSS_X]), np.array([0.075, 0.065])  # through the neighbour; clean
+    schedule = trial.make_schedule(poses, widths, pair.gripper, config, pair.model.opt.timestep)
+    judge = trial.Judge.make(pair, np.zeros(2, int), trial.layout(pair), config)
+    rollout = rollout_cpu(pair, judge, schedule)
+    assert trial.classify(judge, rollout).outcome.tolist() == [Outcome.COLLISION_APPROACH, Outcome.SUCCESS]
+
+    def outcome_with(field: str, index: tuple, value: float) -> list:
+        changed = getattr(rollout, field).copy()
+        changed[index] = value
+        return trial.classify(judge, dataclasses.replace(rollout, **{field: changed})).outcome.tolist()
+
+    flung = 2 * config.max_object_speed
+    assert outcome_with("max_speed", (0, Phase.DISTURB), flung) == [Outcome.COLLISION_APPROACH, Outcome.SUCCESS]
+    assert outcome_with("max_speed", (0, Phase.APPROACH), flung) == [Outcome.INVALID, Outcome.SUCCESS]
+    assert outcome_with("max_speed", (1, Phase.DISTURB), flung) == [Outcome.COLLISION_APPROACH, Outcome.INVALID]
+    assert outcome_with("end_qpos", (0, Phase.LIFT, 0), np.nan) == [Outcome.COLLISION_APPROACH, Outcome.SUCCESS]
+    assert outcome_with("end_qpos", (1, Phase.LIFT, 0), np.nan) == [Outcome.COLLISION_APPROACH, Outcome.INVALID]
 
 
 def test_gripper_placed_in_an_object_collides_before_the_approach(pair):
