@@ -10,9 +10,10 @@ Same schedule, same model and the same per-phase summary (`Rollout`) as the C ba
 On CPU, MJX is ~25x slower than the C engine and compiles for tens of seconds: use it on a GPU.
 
 Two MJX implementations: "jax" (pure JAX) and "warp" (MuJoCo Warp kernels, needs `warp-lang`; built
-for NVIDIA GPUs, also runs, slowly, on CPU); "auto" takes warp on a GPU where it is installed. Warp keeps one contact buffer for all worlds (`naconmax` in total,
-each contact tagged with its world), so each trial counts its own contacts by world id, and a step
-that fills the buffer marks every trial of the batch not ok (invalid), since contacts may be lost.
+for NVIDIA GPUs, also runs, slowly, on CPU); "auto" takes warp on a GPU where it is installed. Warp
+keeps one contact buffer for all worlds (`naconmax` in total, each contact tagged with its world), so
+each trial counts its own contacts by world id, and a step that fills the buffer marks every trial of
+the batch not ok (invalid), since contacts may be lost.
 """
 
 from __future__ import annotations
@@ -212,7 +213,7 @@ def _run(mx, d0, init, controls, force_mask, phase_force, masks, speed_dofs, hei
 
 def rollout_mjx(scene: scene_lib.Scene, judge: Judge, schedule: Schedule, nthread: int = 0, impl: str = "auto") -> Rollout:
     """Roll out the M trials of `schedule` on MJX from the scene's settled state (nthread is unused).
-    impl: "auto" (warp when installed), "jax" or "warp"."""
+    impl: "auto" (`resolve_impl`: warp on a GPU where warp-lang is installed, else jax), "jax" or "warp"."""
     del nthread
     impl = resolve_impl(impl)
     model = _sensorless_model(scene.assets, scene.config, scene.gripper)

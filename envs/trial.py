@@ -3,8 +3,8 @@
 A trial is an open-loop schedule over time, computed once from (pose, width, GripperSpec, TrialConfig)
 by `make_schedule` and rolled out for many grasps in parallel from the same settled scene state, by
 the C engine (`backend="cpu"`, mujoco.batch) or MJX (`backend="mjx"`, jit + vmap + scan; its warp
-implementation on a GPU where `warp-lang` is installed, else its JAX one; "mjx-jax" / "mjx-warp" pick one). All
-backends return the same per-phase summary (`Rollout`), which `classify` turns into outcomes.
+implementation on a GPU where `warp-lang` is installed, else its JAX one; "mjx-jax" / "mjx-warp" pick
+one). All backends return the same per-phase summary (`Rollout`), which `classify` turns into outcomes.
 
 Phases (defaults; 2.04 s simulated, 1020 steps at 2 ms):
   PREGRASP  0.04 s  gripper placed `pregrasp_distance` behind the grasp along -approach, fingers
