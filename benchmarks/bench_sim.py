@@ -57,7 +57,7 @@ def main() -> None:
     parser.add_argument("--mjx-trials", type=int, default=8)
     parser.add_argument("--mjx-objects", type=int, default=2, help="cubes in the MJX reference scene")
     parser.add_argument("--skip-mjx", action="store_true")
-    parser.add_argument("--mjx-backend", default="mjx", help="mjx (warp when installed, else jax), mjx-jax or mjx-warp")
+    parser.add_argument("--mjx-backend", default="mjx", help="mjx (warp on a GPU where warp-lang is installed, else jax), mjx-jax or mjx-warp")
     parser.add_argument("--skip-cpu", action="store_true", help="only the MJX row")
     parser.add_argument(
         "--objects", default="tiny", help="object set of the C-engine scenes (tiny: convex shapes; seen: YCB + procedural, prepared on first use)"

@@ -178,8 +178,7 @@ class Stage1Candidates:
         if not objects:
             return _empty(slots, f"no object with at least {cfg.min_object_points} visible points", info)
         clouds = [points[labels == k] for k in objects]
-        scenes = [points[labels != k] for k in objects]
-        scenes = [others if len(others) else None for others in scenes]
+        scenes = [points[labels != k] for k in objects]  # obstacles: the rest (Stage 1 takes an empty one)
         found = self.stage1.chunked(clouds, scenes, viewpoint, seed, table_plane(points, labels), cfg.stage1_batch_sizes)
         sizes = [len(c) for c in found]
         info["stage1_candidates"] = int(sum(sizes))

@@ -339,11 +339,6 @@ def _labels(labels, n: int) -> np.ndarray:
     return arr.astype(np.int64)
 
 
-def _obstacles(others: np.ndarray) -> np.ndarray | None:
-    """Stage 1's obstacle cloud for one object: the rest of the scene (already checked), None if empty."""
-    return others if len(others) else None
-
-
 def _viewpoint(viewpoint) -> np.ndarray:
     v = np.asarray(viewpoint if viewpoint is not None else (0.0, 0.0, 0.0), np.float64)
     if v.shape != (3,) or not np.all(np.isfinite(v)):
@@ -397,7 +392,7 @@ class Planner:
                 skipped.append({"label": label, "points": count, "candidates": 0,
                                 "reason": f"{count} visible points < min_object_points {self.config.min_object_points}"})
             else:
-                objects.append((label, scene[labels == label], _obstacles(scene[labels != label])))
+                objects.append((label, scene[labels == label], scene[labels != label]))  # obstacles: the rest
         if not objects:
             if len(ids) == 0:
                 reason = "no object points: every label is < 0 (table/background)"
@@ -423,7 +418,7 @@ class Planner:
         mask = np.asarray(target_mask)
         if mask.dtype != bool or mask.shape != (len(scene),):
             raise ValueError(f"the target mask must be bool with shape [N] = ({len(scene)},), got {mask.dtype} {mask.shape}")
-        return self._plan_one(scene, scene[mask], _obstacles(scene[~mask]), _viewpoint(viewpoint), seed, start)
+        return self._plan_one(scene, scene[mask], scene[~mask], _viewpoint(viewpoint), seed, start)
 
     # -- internals ------------------------------------------------------------------------------
 

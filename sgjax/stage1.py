@@ -222,7 +222,7 @@ class Stage1:
     def batch(self, objects, scenes=None, viewpoints=None, seed: int = 0, support_plane=None) -> list[Candidates]:
         """Candidates for B objects in one compiled call.
 
-        objects: sequence of clouds [N_i, 3]; scenes: None or a sequence (items None or [S_i, 3]);
+        objects: sequence of clouds [N_i, 3]; scenes: None or a sequence (items None or [S_i, 3], S_i may be 0);
         viewpoints: None or [B, 3]; support_plane: None, [4] or [B, 4], the table as (n, d) with free
         space n . x + d > 0 (filter (v)). Bad clouds give an empty Candidates with the reason, not an
         error (the single-object `__call__` raises instead).
