@@ -81,8 +81,10 @@ def _describe(value) -> str:
     return type(value).__name__
 
 
-def run_key(method: str, options: dict, n_objects: int, assets: Sequence, config: DeclutterConfig) -> dict:
-    """What must match for a resumed scene log to belong to this run."""
+def run_key(method: str, options: dict, n_objects: int, assets: Sequence, config: DeclutterConfig,
+            method_config: object = None) -> dict:
+    """What must match for a resumed scene log to belong to this run. method_config: the method's own
+    settings (its `config`, defaults included), so that changed defaults do not resume older logs."""
     objects = hashlib.sha1("\n".join(sorted(a.name for a in assets)).encode()).hexdigest()[:12]
     # nthread changes speed, not results.
     relevant = dataclasses.replace(config, nthread=0)
@@ -92,6 +94,7 @@ def run_key(method: str, options: dict, n_objects: int, assets: Sequence, config
         "n_objects": int(n_objects),
         "objects": objects,
         "config": hashlib.sha1(repr(relevant).encode()).hexdigest()[:12],
+        "method_config": hashlib.sha1(repr(method_config).encode()).hexdigest()[:12],
     }
 
 
@@ -158,7 +161,9 @@ def run_benchmark(
     else:
         assets, label = resolve_objects(chosen, objects, progress)
     setting_label = f"{label}-{n}"
-    key = run_key(name, options, n, assets, config)
+    # Built before the logs are read: its settings are part of the resume key.
+    instance = instance or make_method(name, **options)
+    key = run_key(name, options, n, assets, config, getattr(instance, "config", None))
     out = Path(out)
 
     todo, logs = [], {}
@@ -172,7 +177,6 @@ def run_benchmark(
             logs[index] = log
     warmup_s = 0.0
     if todo:
-        instance = instance or make_method(name, **options)
         warmup_s = _warm_up(instance, assets, n, seed, todo[0], config)
     from tqdm import tqdm
 

@@ -8,7 +8,8 @@ the grasp or along the straight approach over the last `approach_clearance` (the
 moves along), or an obstacle lies between the fingers at the grasp, or (v) given a
 support plane (the table), any gripper box comes within `support_clearance` of it, at the grasp or
 backed off by `approach_clearance`: the camera cannot see the table under an object, so (iv) alone
-lets grasps through that come from beneath the table.
+lets grasps through that come from beneath the table. Before the filters, Stage 1 backs grasps that
+reach a little into the plane off it along their approach (`lift_to_plane`) rather than let (v) remove them.
 
 Contacts in (iii): for each finger, the target points in the closing region within `contact_slab` of
 the extreme along the closing axis on that finger's side; the finger's alignment is the best |cos|
@@ -232,18 +233,41 @@ def coarse_filter(
     return FilterResult(keep, *(f & valid for f in failed), points_between)
 
 
+def _lowest_corner(poses, widths, normal, offset, spec: GripperSpec) -> jax.Array:
+    """Height above the plane (normal [3], offset []) of the lowest gripper box corner: poses [M, 4, 4] -> [M]."""
+    boxes = gripper_boxes(poses, widths, spec)  # [M, 3]
+    reach = jnp.sum(jnp.abs(jnp.einsum("i,mbij->mbj", normal, boxes.rotation)) * boxes.half_extents, -1)
+    return jnp.min(boxes.centre @ normal + offset - reach, -1)
+
+
 def below_plane(poses, widths, plane, spec: GripperSpec, cfg: FilterConfig = FilterConfig()) -> jax.Array:
     """Filter (v): poses [M, 4, 4], widths [M], plane [4] or None -> bool [M], some gripper box corner
     lies less than support_clearance above the plane at the grasp or approach_clearance behind it."""
     plane = jnp.asarray(NO_PLANE if plane is None else plane, poses.dtype)
     normal, offset = plane[:3], plane[3]
     backed = poses.at[:, :3, 3].add(-cfg.approach_clearance * poses[:, :3, 2])
-    lowest = []
-    for pose in (poses, backed):
-        boxes = gripper_boxes(pose, widths, spec)  # [M, 3]
-        reach = jnp.sum(jnp.abs(jnp.einsum("i,mbij->mbj", normal, boxes.rotation)) * boxes.half_extents, -1)
-        lowest.append(jnp.min(boxes.centre @ normal + offset - reach, -1))
+    lowest = [_lowest_corner(pose, widths, normal, offset, spec) for pose in (poses, backed)]
     return jnp.minimum(*lowest) < cfg.support_clearance
+
+
+def lift_to_plane(poses, widths, plane, spec: GripperSpec, clearance: float, max_lift: float, min_cos: float = 0.5):
+    """Back grasps that reach into the support plane off along their approach until the lowest gripper
+    corner is `clearance` above it: poses [M, 4, 4], widths [M], plane [4] -> (poses [M, 4, 4], lift [M]).
+
+    A template's depth is a fraction of the matched primitive's, so on a thin object lying on the table
+    the deepest templates put the fingertips into it, and filter (v) would remove exactly the grasps
+    that close below the object's widest section (the others squeeze its top and let it slip out).
+    Only grasps approaching within acos(min_cos) of straight down and needing at most `max_lift` (metres
+    along the approach) move; the rest are left for filter (v). NO_PLANE moves nothing.
+    """
+    plane = jnp.asarray(plane, poses.dtype)
+    normal, offset = plane[:3], plane[3]
+    down = -(poses[:, :3, 2] @ normal)  # how much a step back along the approach raises the gripper
+    # 0.1 mm above the clearance, so float error cannot leave a lifted grasp for filter (v) to remove.
+    need = clearance + 1e-4 - _lowest_corner(poses, widths, normal, offset, spec)
+    lift = jnp.where(down > 0.0, need / jnp.maximum(down, 1e-6), jnp.inf)
+    lift = jnp.where((need > 0.0) & (down >= min_cos) & (lift <= max_lift), lift, 0.0)
+    return poses.at[:, :3, 3].add(-lift[:, None] * poses[:, :3, 2]), lift
 
 
 def removal_counts(result: FilterResult, valid) -> dict[str, int]:

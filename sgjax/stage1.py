@@ -29,6 +29,7 @@ from sgjax.coarse_filter import (
     FilterConfig,
     coarse_filter,
     estimate_normals,
+    lift_to_plane,
     removal_counts,
 )
 from sgjax.ems import EMSConfig, FitResult, _fit_one
@@ -62,6 +63,10 @@ class Stage1Config:
     # Scene points this close above the support plane are the table: filter (v) tests it exactly, so
     # they leave the obstacle cloud, whose test grows the gripper by `filter.obstacle_margin`.
     table_band: float = 0.005
+    # Grasps whose fingers reach into the support plane are backed off along the approach by at most
+    # max_lift to clear it by filter.support_clearance (`sgjax.coarse_filter.lift_to_plane`) rather
+    # than removed by filter (v): on thin lying objects these are the grasps that close low enough.
+    max_lift: float = 0.01
 
 
 @dataclasses.dataclass
@@ -163,6 +168,9 @@ def _pipeline(obj, obj_mask, scene, scene_mask, viewpoint, plane, scale, db: Mat
     take = lambda x: jnp.take_along_axis(x, order.reshape(order.shape + (1,) * (x.ndim - 2)), 1)
     poses, widths, valid = take(poses), take(widths), take(mask)
     rank = order // g
+    if cfg.max_lift > 0.0:
+        lift = lambda p, w, pl: lift_to_plane(p, w, pl, cfg.spec, cfg.filter.support_clearance, cfg.max_lift)[0]
+        poses = jax.vmap(lift)(poses, widths, plane)
     local = jax.vmap(to_gripper_frame)(obj, poses)  # [B, M, N, 3]: shared by the adaptation and the filters
     if cfg.adapt_width:
         adapt = lambda lc, om, w: recentre_and_widen(lc, om, w, cfg.spec, cfg.max_recentre)

@@ -13,7 +13,7 @@ import pytest
 from envs.camera import CameraConfig
 from envs.objects import tiny_object_set
 from eval import declutter, metrics, report
-from eval.benchmark import run_benchmark
+from eval.benchmark import run_benchmark, run_key
 from eval.declutter import DeclutterConfig, run_scene
 from eval.methods import (
     METHODS,
@@ -219,6 +219,17 @@ def test_benchmark_resumes_and_writes_tables_and_pictures(tmp_path, objects):
     # A log written under other settings is not silently reused.
     with pytest.raises(ValueError, match="different configuration"):
         run_benchmark("oracle-topdown", scenes=1, **{**args, "config": dataclasses.replace(CONFIG, extra_attempts=2)})
+
+
+def test_resume_key_covers_the_methods_own_settings(objects):
+    """A method's changed settings (its defaults included) must not resume logs written under the old ones."""
+    from eval.gpd import GPDConfig
+
+    key = lambda cfg: run_key("gpd", {}, 2, objects, CONFIG, cfg)
+    assert key(GPDConfig()) == key(GPDConfig())
+    other = GPDConfig(voxel_size=0.008)
+    assert key(other)["method_config"] != key(GPDConfig())["method_config"]
+    assert {k for k in key(other) if key(other)[k] != key(GPDConfig())[k]} == {"method_config"}
 
 
 def test_bad_input_is_reported_clearly(tmp_path, objects, capsys):
