@@ -265,7 +265,7 @@ def lift_to_plane(poses, widths, plane, spec: GripperSpec, clearance: float, max
     down = -(poses[:, :3, 2] @ normal)  # how much a step back along the approach raises the gripper
     # 0.1 mm above the clearance, so float error cannot leave a lifted grasp for filter (v) to remove.
     need = clearance + 1e-4 - _lowest_corner(poses, widths, normal, offset, spec)
-    lift = jnp.where(down > 0.0, need / jnp.maximum(down, 1e-6), jnp.inf)
+    lift = need / jnp.maximum(down, min_cos)  # exact wherever it is used: only down >= min_cos moves
     lift = jnp.where((need > 0.0) & (down >= min_cos) & (lift <= max_lift), lift, 0.0)
     return poses.at[:, :3, 3].add(-lift[:, None] * poses[:, :3, 2]), lift
 
