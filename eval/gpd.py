@@ -47,8 +47,9 @@ import numpy as np
 
 from eval.methods import Decision
 from sgjax.coarse_filter import estimate_normals
-from sgjax.gripper import GripperSpec, local_regions
+from sgjax.gripper import GripperSpec, local_regions, lowest_height
 from sgjax.rotations import points_to_frame
+from sgjax.superquadric import pose_matrix
 
 DOWN = np.array([0.0, 0.0, -1.0], np.float32)
 
@@ -132,28 +133,9 @@ def swept_hits(local: jax.Array, width: jax.Array, spec: GripperSpec, sweep: flo
     return local_regions(local, width, spec, 0.0, sweep)[1]
 
 
-def _lowest_z(rotation: jax.Array, origin: jax.Array, width: jax.Array, spec: GripperSpec) -> jax.Array:
-    """Lowest world z of the fingers and palm of grasps rotation [..., 3, 3], origin [..., 3], width [...]."""
-    t, length = spec.finger_thickness, spec.finger_length
-    fx = 0.5 * width + 0.5 * t
-    zeros = jnp.zeros_like(fx)
-    centres = jnp.stack(
-        [
-            jnp.stack([-fx, zeros, zeros + 0.5 * length], -1),
-            jnp.stack([fx, zeros, zeros + 0.5 * length], -1),
-            jnp.stack([zeros, zeros, zeros - 0.5 * spec.palm_size[2]], -1),
-        ],
-        -2,
-    )  # [..., 3 boxes, 3]
-    halves = jnp.asarray(
-        [[0.5 * t, 0.5 * spec.finger_width, 0.5 * length], [0.5 * t, 0.5 * spec.finger_width, 0.5 * length],
-         [0.5 * s for s in spec.palm_size]],
-        rotation.dtype,
-    )
-    row = rotation[..., 2, :]  # [..., 3]: world z of each gripper axis
-    centre_z = origin[..., None, 2] + jnp.einsum("...j,...bj->...b", row, centres)
-    extent = jnp.einsum("...j,bj->...b", jnp.abs(row), halves)
-    return jnp.min(centre_z - extent, -1)
+def _table_plane(table_z: jax.Array) -> jax.Array:
+    """The table z = table_z as a plane (n, d) [4]; table_z = -inf (no table seen) puts it infinitely low."""
+    return jnp.concatenate([jnp.asarray([0.0, 0.0, 1.0]), -jnp.reshape(table_z, (1,))]).astype(jnp.float32)
 
 
 def lateral_offsets(config: GPDConfig) -> np.ndarray:
@@ -173,6 +155,7 @@ def candidates(points, mask, viewpoint, table_z, key, config: GPDConfig) -> dict
     "normals" [N, 3], "sample" [K]}; K = num_samples, A = num_angles.
     """
     spec, n = config.spec, points.shape[0]
+    table = _table_plane(table_z)
     normals = estimate_normals(points, mask, viewpoint, config.normal_neighbours)
     weight = mask.astype(jnp.float32)
     sample = jax.random.choice(key, n, (config.num_samples,), replace=True, p=weight / jnp.maximum(weight.sum(), 1.0))
@@ -203,7 +186,7 @@ def candidates(points, mask, viewpoint, table_z, key, config: GPDConfig) -> dict
             hits = swept_hits(local0 + jnp.asarray([u, 0.0, s], jnp.float32), open_width, spec, config.approach_clearance)
             cloud_free = ~jnp.any(hits & mask, -1)
             origin = p[:, None] - u * xk - s * z
-            table_free = _lowest_z(rotation, origin, open_width, spec) >= table_z + config.table_clearance
+            table_free = lowest_height(pose_matrix(rotation, origin), open_width, spec, table) >= config.table_clearance
             free.append(cloud_free & table_free)
     free = jnp.stack(free, -1)  # [K, A, D * L]
     first = jnp.argmax(free, -1)
@@ -223,6 +206,7 @@ def evaluate(poses, valid, points, mask, normals, table_z, config: GPDConfig) ->
     -> {"poses" [M, 4, 4], "widths" [M], "scores" [M], "valid" [M], "points_between" [M]}.
     """
     spec = config.spec
+    table = _table_plane(table_z)
     rotation, origin = poses[:, :3, :3], poses[:, :3, 3]
     local = points_to_frame(points, rotation, origin)
     x, y, z = local[..., 0], local[..., 1], local[..., 2]
@@ -256,7 +240,7 @@ def evaluate(poses, valid, points, mask, normals, table_z, config: GPDConfig) ->
         inside = mask & in_y & in_z & (jnp.abs(xs) <= 0.5 * width[:, None])
         count = jnp.sum(inside, -1)
         hits = jnp.any(swept_hits(local.at[..., 0].set(xs), width, spec, config.approach_clearance) & mask, -1)
-        table_ok = _lowest_z(rotation, moved, width, spec) >= table_z + config.table_clearance
+        table_ok = lowest_height(pose_matrix(rotation, moved), width, spec, table) >= config.table_clearance
         sides = []
         for side in (-1.0, 1.0):
             extreme = jnp.max(jnp.where(inside, side * xs, -big), -1, keepdims=True)

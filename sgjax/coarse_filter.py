@@ -35,7 +35,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sgjax.gripper import GripperSpec, gripper_boxes, local_regions, to_gripper_frame
+from sgjax.gripper import GripperSpec, local_regions, lowest_height, to_gripper_frame
 from sgjax.superquadric import Superquadric, log_implicit_local
 
 REASONS = ("collision_object", "too_few_points", "normal_angle", "collision_scene", "below_support")
@@ -233,20 +233,12 @@ def coarse_filter(
     return FilterResult(keep, *(f & valid for f in failed), points_between)
 
 
-def _lowest_corner(poses, widths, normal, offset, spec: GripperSpec) -> jax.Array:
-    """Height above the plane (normal [3], offset []) of the lowest gripper box corner: poses [M, 4, 4] -> [M]."""
-    boxes = gripper_boxes(poses, widths, spec)  # [M, 3]
-    reach = jnp.sum(jnp.abs(jnp.einsum("i,mbij->mbj", normal, boxes.rotation)) * boxes.half_extents, -1)
-    return jnp.min(boxes.centre @ normal + offset - reach, -1)
-
-
 def below_plane(poses, widths, plane, spec: GripperSpec, cfg: FilterConfig = FilterConfig()) -> jax.Array:
     """Filter (v): poses [M, 4, 4], widths [M], plane [4] or None -> bool [M], some gripper box corner
     lies less than support_clearance above the plane at the grasp or approach_clearance behind it."""
-    plane = jnp.asarray(NO_PLANE if plane is None else plane, poses.dtype)
-    normal, offset = plane[:3], plane[3]
+    plane = NO_PLANE if plane is None else plane
     backed = poses.at[:, :3, 3].add(-cfg.approach_clearance * poses[:, :3, 2])
-    lowest = [_lowest_corner(pose, widths, normal, offset, spec) for pose in (poses, backed)]
+    lowest = [lowest_height(pose, widths, spec, plane) for pose in (poses, backed)]
     return jnp.minimum(*lowest) < cfg.support_clearance
 
 
@@ -260,11 +252,9 @@ def lift_to_plane(poses, widths, plane, spec: GripperSpec, clearance: float, max
     Only grasps approaching within acos(min_cos) of straight down and needing at most `max_lift` (metres
     along the approach) move; the rest are left for filter (v). NO_PLANE moves nothing.
     """
-    plane = jnp.asarray(plane, poses.dtype)
-    normal, offset = plane[:3], plane[3]
-    down = -(poses[:, :3, 2] @ normal)  # how much a step back along the approach raises the gripper
+    down = -(poses[:, :3, 2] @ jnp.asarray(plane, poses.dtype)[:3])  # a step back along the approach raises the gripper this much
     # 0.1 mm above the clearance, so float error cannot leave a lifted grasp for filter (v) to remove.
-    need = clearance + 1e-4 - _lowest_corner(poses, widths, normal, offset, spec)
+    need = clearance + 1e-4 - lowest_height(poses, widths, spec, plane)
     lift = need / jnp.maximum(down, min_cos)  # exact wherever it is used: only down >= min_cos moves
     lift = jnp.where((need > 0.0) & (down >= min_cos) & (lift <= max_lift), lift, 0.0)
     return poses.at[:, :3, 3].add(-lift[:, None] * poses[:, :3, 2]), lift

@@ -380,6 +380,16 @@ def recentre_and_widen(local, valid, widths, spec: GripperSpec, max_shift: float
     return shift, widths
 
 
+def lowest_height(pose: jax.Array, width: jax.Array | float, spec: GripperSpec, plane) -> jax.Array:
+    """Height above a plane of the lowest corner of the gripper boxes (fingers and palm):
+    pose [..., 4, 4], width [...], plane [4] (n, d: the plane n . x + d = 0, n a unit normal) -> [...]."""
+    boxes = gripper_boxes(pose, width, spec)  # [..., 3]
+    plane = jnp.asarray(plane, boxes.centre.dtype)
+    normal, offset = plane[:3], plane[3]
+    reach = jnp.sum(jnp.abs(jnp.einsum("i,...bij->...bj", normal, boxes.rotation)) * boxes.half_extents, -1)
+    return jnp.min(boxes.centre @ normal + offset - reach, -1)
+
+
 def points_in_box(points: jax.Array, box: Box, margin: float = 0.0) -> jax.Array:
     """Whether points[..., N, 3] lie in the closed boxes [...] grown by `margin` -> bool[..., N]."""
     points = _points(points)
