@@ -40,7 +40,7 @@ import numpy as np
 from flax import nnx
 
 from eval import gpd
-from eval.methods import Decision
+from eval.methods import Decision, near_grasps
 from eval.supergrasp import table_plane
 from sgjax import gripper, planner, pointcloud
 from sgjax.gripper import GripperSpec
@@ -116,6 +116,19 @@ def _padded(poses, widths, target, slots: int, found: int, reason: str = "", inf
 
 def _empty(slots: int, reason: str, info=None) -> CandidateSet:
     return _padded(np.zeros((0, 4, 4)), np.zeros(0), np.zeros(0, np.int64), slots, 0, reason, info)
+
+
+def without_avoided(cands: CandidateSet, avoid, spec: GripperSpec) -> CandidateSet:
+    """cands less the candidates that are the same grasp as a pose in avoid [F, 4, 4] (the harness's
+    memory of failed grasps), re-padded to the same slots; the reason says so when none is left."""
+    n = cands.n
+    near = near_grasps(cands.poses[:n], avoid, spec)
+    if not near.any():
+        return cands
+    keep = np.flatnonzero(~near)
+    info = {**cands.info, "avoided": int(near.sum())}
+    reason = "" if len(keep) else f"all {n} candidates are the same grasp as one that already failed"
+    return _padded(cands.poses[keep], cands.widths[keep], cands.target[keep], len(cands.widths), cands.found, reason, info)
 
 
 def gpd_candidates(points, labels, viewpoint, seed: int, config: BaselineConfig) -> CandidateSet:
@@ -255,10 +268,10 @@ class _CandidateMethod:
         # Commit the weights as the planner does: every instance with this network shares one compile.
         self.state = jax.device_put(state, jax.devices()[0])
 
-    def plan(self, points: np.ndarray, labels: np.ndarray, viewpoint, seed: int = 0) -> Decision:
+    def plan(self, points: np.ndarray, labels: np.ndarray, viewpoint, seed: int = 0, avoid=None) -> Decision:
         start = time.perf_counter()
         points, labels = np.asarray(points), np.asarray(labels)
-        cands = self.generator(points, labels, viewpoint, seed)
+        cands = without_avoided(self.generator(points, labels, viewpoint, seed), avoid, self.config.spec)
         mid = time.perf_counter()
         info = {"generator": self.generator_name, "candidates": cands.found, "scored": cands.n, **cands.info}
         if cands.n == 0:

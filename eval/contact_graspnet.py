@@ -59,7 +59,7 @@ from pathlib import Path
 
 import numpy as np
 
-from eval.methods import Decision, MethodUnavailable
+from eval.methods import Decision, MethodUnavailable, near_grasps
 from sgjax import pointcloud
 from sgjax.gripper import GripperSpec
 
@@ -208,7 +208,7 @@ class ContactGraspNetMethod:
 
     # -- the method ---------------------------------------------------------------------------
 
-    def plan(self, points: np.ndarray, labels: np.ndarray, viewpoint, seed: int = 0) -> Decision:
+    def plan(self, points: np.ndarray, labels: np.ndarray, viewpoint, seed: int = 0, avoid=None) -> Decision:
         cfg = self.config
         start = time.perf_counter()
         points, mask, labels = pointcloud.scene_cloud(
@@ -232,8 +232,14 @@ class ContactGraspNetMethod:
         if len(confidence) == 0:
             return Decision(None, 0.0, 0.0, f"Contact-GraspNet found no grasp above confidence {cfg.threshold:g}",
                             _timing(elapsed), info)
-        best = int(np.argmax(confidence))
-        pose = cgn_to_sgjax(grasps[best : best + 1], mean, cfg.spec, cfg.gripper_depth)[0]
+        poses = cgn_to_sgjax(grasps, mean, cfg.spec, cfg.gripper_depth)
+        avoided = near_grasps(poses, avoid, cfg.spec)
+        info["avoided"] = int(avoided.sum())
+        if avoided.all():
+            return Decision(None, 0.0, 0.0, f"all {len(confidence)} grasps are the same grasp as one that already failed",
+                            _timing(elapsed), info)
+        best = int(np.argmax(np.where(avoided, -np.inf, confidence)))
+        pose = poses[best]
         return Decision(pose, cfg.spec.max_opening, float(confidence[best]), "", _timing(elapsed), info)
 
 

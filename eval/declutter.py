@@ -18,6 +18,11 @@ Choices, documented:
   * A failed grasp leaves the objects where the trial left them (`envs.scene.after_trial`: knocked
     over, dropped, pushed; then re-settled), as a real table would; the method re-plans on a new
     observation with a new seed. A target dropped out of the workspace counts as not grasped.
+  * Memory (`DeclutterConfig.remember_failures`, on by default): every plan call gets the poses of the
+    grasps that failed so far in this scene as `avoid`, and the method leaves out the same grasps
+    (`eval.methods.near_grasps`). Without it a deterministic planner repeats a grasp that collides on
+    its approach until the attempt cap, as long as the scene does not change. Every method gets the
+    same memory; a method whose `plan` takes no `avoid` runs without it (logged as "memory": false).
   * Scene seeds are `scene_seed(seed, index)`: the same (setting, seed, index) gives the identical
     scene for every method. Plan seeds are `plan_seed(scene_seed, attempt)`.
 """
@@ -25,6 +30,7 @@ Choices, documented:
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import time
 from collections.abc import Sequence
 
@@ -64,7 +70,8 @@ def get_setting(name: str) -> Setting:
 
 @dataclasses.dataclass(frozen=True)
 class DeclutterConfig:
-    """Episode settings: attempts allowed beyond the object count, camera, scene, trial, trial backend."""
+    """Episode settings: attempts allowed beyond the object count, camera, scene, trial, trial backend;
+    remember_failures: hand the method the poses that failed so far in the scene (module doc)."""
 
     extra_attempts: int = 5
     camera: camera_lib.CameraConfig = dataclasses.field(default_factory=camera_lib.CameraConfig)
@@ -73,6 +80,7 @@ class DeclutterConfig:
     gripper: GripperSpec = dataclasses.field(default_factory=GripperSpec)
     backend: str = "cpu"
     nthread: int = 0
+    remember_failures: bool = True
 
     def __post_init__(self):
         if self.extra_attempts < 0:
@@ -124,6 +132,15 @@ def _rigid(pose, method_name: str) -> np.ndarray:
     return out
 
 
+def takes_avoid(method: Method) -> bool:
+    """Whether method.plan accepts the harness's memory (an `avoid` argument)."""
+    try:
+        parameters = inspect.signature(method.plan).parameters
+    except (TypeError, ValueError):
+        return False
+    return "avoid" in parameters or any(p.kind == p.VAR_KEYWORD for p in parameters.values())
+
+
 def _json_info(info: dict) -> dict:
     """Method extras made JSON-able (numpy scalars and arrays to Python)."""
     out = {}
@@ -162,10 +179,10 @@ def run_scene(
 
     log: {"version", "method", "setting", "seed", "scene_index", "scene_seed", "n_objects",
     "objects" (on the table after settling), "object_names", "at_rest", "attempts" [...], "end",
-    "final_reason", "final_timing", "fell_out", "remaining", "wall_s"}; each attempt:
+    "final_reason", "final_timing", "fell_out", "remaining", "memory", "wall_s"}; each attempt:
     {"attempt", "target", "target_name", "outcome", "success", "score", "width", "pose" [4][4],
     "points_in_gripper" {object: count}, "timing" {stage1_s, stage2_s, total_s}, "plan_seed",
-    "observe_s", "trial_s", "info"}.
+    "avoided" (failed poses handed to the method), "observe_s", "trial_s", "info"}.
     """
     start = time.perf_counter()
     config = config or DeclutterConfig()
@@ -177,6 +194,8 @@ def run_scene(
     cap = len(present0) + config.extra_attempts
     viewpoint = np.asarray(config.camera.position, np.float64)
     ground_truth = getattr(method, "uses_ground_truth", False)
+    memory = config.remember_failures and takes_avoid(method)
+    failed: list[np.ndarray] = []  # poses of this scene's failed attempts (the memory)
     attempts: list[dict] = []
     fell_out: list[int] = []
     end, final_reason, final_timing, first = "cleared", "", None, None
@@ -194,7 +213,11 @@ def run_scene(
         if ground_truth:
             method.set_scene(scene)
         p_seed = plan_seed(s_seed, len(attempts))
-        decision: Decision = method.plan(obs.points, obs.point_labels, viewpoint, p_seed)
+        if memory:
+            avoid = np.asarray(failed, np.float64).reshape(-1, 4, 4)
+            decision: Decision = method.plan(obs.points, obs.point_labels, viewpoint, p_seed, avoid=avoid)
+        else:
+            decision = method.plan(obs.points, obs.point_labels, viewpoint, p_seed)
         if decision.pose is None:
             end, final_reason, final_timing = "no_grasp", decision.reason or "no grasp", dict(decision.timing)
             break
@@ -213,6 +236,7 @@ def run_scene(
             "points_in_gripper": {str(k): v for k, v in counts.items()},
             "timing": {k: float(v) for k, v in decision.timing.items()},
             "plan_seed": p_seed,
+            "avoided": len(failed) if memory else 0,
             "observe_s": observe_s,
             "trial_s": 0.0,
             "info": _json_info(decision.info),
@@ -220,6 +244,7 @@ def run_scene(
         attempts.append(record)
         candidates = {k: v for k, v in counts.items() if scene.present[k]}
         if not candidates:
+            failed.append(pose)
             continue
         target = max(candidates, key=lambda k: (candidates[k], -k))
         t0 = time.perf_counter()
@@ -233,6 +258,7 @@ def run_scene(
         if record["success"]:
             scene = scene_lib.remove_object(scene, target)
         else:  # the objects stay where the failed grasp left them (knocked over, dropped)
+            failed.append(pose)
             scene = scene_lib.after_trial(scene, result.final_qpos[0])
         fell_out += [int(i) for i in np.flatnonzero(before & ~scene.present) if i != target or not record["success"]]
     if first is None:  # nothing on the table after settling: still keep a picture of the empty scene
@@ -254,6 +280,7 @@ def run_scene(
         "final_timing": final_timing,
         "fell_out": fell_out,
         "remaining": int(scene.present.sum()),
+        "memory": memory,
         "wall_s": time.perf_counter() - start,
     }
     return SceneRun(log, first)

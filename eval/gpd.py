@@ -45,7 +45,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from eval.methods import Decision
+from eval.methods import Decision, near_grasps
 from sgjax.coarse_filter import estimate_normals
 from sgjax.gripper import GripperSpec, local_regions, lowest_height
 from sgjax.rotations import points_to_frame
@@ -272,8 +272,9 @@ class GPDMethod:
     def __init__(self, config: GPDConfig | None = None):
         self.config = config or GPDConfig()
 
-    def plan(self, points: np.ndarray, labels: np.ndarray, viewpoint, seed: int = 0) -> Decision:
-        """Best grasp for a scene cloud points [P, 3] (world) with labels [P] (object id, < 0 table)."""
+    def plan(self, points: np.ndarray, labels: np.ndarray, viewpoint, seed: int = 0, avoid=None) -> Decision:
+        """Best grasp for a scene cloud points [P, 3] (world) with labels [P] (object id, < 0 table),
+        leaving out the same grasps as the poses in avoid [F, 4, 4] (failed ones; see eval/methods.py)."""
         cfg = self.config
         start = time.perf_counter()
         cloud, mask, table_z, n = prepare_cloud(points, labels, cfg, seed)
@@ -289,16 +290,21 @@ class GPDMethod:
         out = evaluate(stage1["poses"].reshape(m, 4, 4), stage1["valid"].reshape(m), cloud, mask,
                        stage1["normals"], np.float32(table_z), cfg)
         out = jax.tree_util.tree_map(np.asarray, out)
+        avoided = out["valid"] & near_grasps(out["poses"], avoid, cfg.spec)
+        out["scores"] = np.where(avoided, -1.0, out["scores"])
         counts = {
             "object_points": n,
             "candidates": m,
             "collision_free": int(np.asarray(stage1["valid"]).sum()),
-            "kept": int(out["valid"].sum()),
+            "kept": int((out["valid"] & ~avoided).sum()),
+            "avoided": int(avoided.sum()),
         }
         if counts["kept"]:
             best = int(np.argmax(out["scores"]))
             pose = _orthonormal(out["poses"][best])
             result = (pose, float(out["widths"][best]), float(out["scores"][best]), "")
+        elif counts["avoided"]:
+            result = (None, 0.0, 0.0, f"all {counts['avoided']} kept candidates are the same grasp as one that already failed")
         elif counts["collision_free"]:
             reason = (
                 f"none of {counts['collision_free']} collision-free candidates kept "

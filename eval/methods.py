@@ -2,8 +2,13 @@
 
 A method sees one camera observation and nothing else of the simulator:
 
-    method.plan(points [P, 3] world, labels [P] int (object ids; < 0 = table), viewpoint [3], seed)
-        -> Decision(pose [4, 4] | None, width, score, reason, timing, info)
+    method.plan(points [P, 3] world, labels [P] int (object ids; < 0 = table), viewpoint [3], seed,
+                avoid=[F, 4, 4]) -> Decision(pose [4, 4] | None, width, score, reason, timing, info)
+
+`avoid` is the harness's memory, given alike to every method: the poses of the grasps that already
+failed in this scene. A method does not plan one of them again: it leaves out its candidates that
+`near_grasps` calls the same grasp (closing-region centres within 1 cm, hands within 15 deg). A
+method whose `plan` takes no `avoid` runs without the memory.
 
 Diagnostic methods that read the simulator's ground truth (`oracle-topdown`) say so with
 `uses_ground_truth = True`; the harness then hands them the scene with `set_scene(scene)` before each
@@ -51,7 +56,18 @@ class Decision:
 class Method(Protocol):
     name: str
 
-    def plan(self, points: np.ndarray, labels: np.ndarray, viewpoint: np.ndarray, seed: int = 0) -> Decision: ...
+    def plan(self, points: np.ndarray, labels: np.ndarray, viewpoint: np.ndarray, seed: int = 0,
+             avoid: np.ndarray | None = None) -> Decision: ...
+
+
+def near_grasps(poses, avoid, spec) -> np.ndarray:
+    """Which of poses [K, 4, 4] are the same grasp as one in avoid [F, 4, 4] (or None) -> bool[K];
+    host-side `sgjax.gripper.near_grasps` with its default tolerances."""
+    from sgjax import gripper
+
+    poses = np.asarray(poses, np.float64).reshape(-1, 4, 4)
+    avoid = np.zeros((0, 4, 4)) if avoid is None else np.asarray(avoid, np.float64).reshape(-1, 4, 4)
+    return gripper.near_grasps(poses, avoid, spec, xp=np)
 
 
 class UnknownMethod(ValueError):

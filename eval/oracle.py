@@ -20,7 +20,7 @@ from scipy.spatial.transform import Rotation
 
 from envs import simple_grasps
 from eval.gpd import swept_hits, voxel_downsample
-from eval.methods import Decision
+from eval.methods import Decision, near_grasps
 
 
 def top_down_candidates(scene, index: int, depth: float = 0.03, table_clearance: float = 0.01,
@@ -72,7 +72,7 @@ class OracleTopDown:
         """The scene the next `plan` call observes (ground truth)."""
         self._scene = scene
 
-    def plan(self, points: np.ndarray, labels: np.ndarray, viewpoint, seed: int = 0) -> Decision:
+    def plan(self, points: np.ndarray, labels: np.ndarray, viewpoint, seed: int = 0, avoid=None) -> Decision:
         if self._scene is None:
             raise RuntimeError("oracle-topdown reads the ground truth: call set_scene(scene) before plan")
         start = time.perf_counter()
@@ -87,7 +87,8 @@ class OracleTopDown:
         tried = 0
         for index in seen:
             poses, widths = top_down_candidates(scene, index, self.depth)
-            for pose, width in zip(poses, widths):
+            fresh = ~near_grasps(poses, avoid, spec)  # not one that already failed
+            for pose, width in zip(poses[fresh], widths[fresh]):
                 tried += 1
                 local = (cloud - pose[:3, 3]) @ pose[:3, :3]
                 hits = swept_hits(local, jnp.asarray(width, jnp.float32), spec, self.approach_clearance)

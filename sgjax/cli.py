@@ -350,7 +350,7 @@ def _cmd_declutter(args: argparse.Namespace) -> int:
             objects=args.objects,
             n_objects=args.n_objects,
             method_options=options,
-            config=DeclutterConfig(backend=args.backend),
+            config=DeclutterConfig(backend=args.backend, remember_failures=not args.no_memory),
             pictures=args.pictures,
             progress=not args.quiet,
         )
@@ -512,6 +512,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--small-db", action="store_true", help="the small primitive database (Stage-1 methods; tests)")
     p.add_argument("--backend", default="cpu", help=BACKEND_HELP)
     p.add_argument("--pictures", type=int, default=3, help="draw the first this many scenes (default 3)")
+    p.add_argument(
+        "--no-memory", action="store_true",
+        help="do not hand the method the grasps that already failed in the scene (by default it leaves them out)",
+    )
     p.add_argument("--json", action="store_true", help='print {"GSR", "TSR", "GA", "scenes", ...} as JSON')
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_declutter)

@@ -390,6 +390,33 @@ def lowest_height(pose: jax.Array, width: jax.Array | float, spec: GripperSpec, 
     return jnp.min(boxes.centre @ normal + offset - reach, -1)
 
 
+# A grasp this close to one that failed is the same grasp: the closing-region centres within
+# AVOID_DISTANCE and the hands within AVOID_ANGLE_DEG of each other (the decluttering harness's memory).
+AVOID_DISTANCE = 0.01
+AVOID_ANGLE_DEG = 15.0
+
+
+def near_grasps(poses, others, spec: GripperSpec, max_distance: float = AVOID_DISTANCE,
+                max_angle_deg: float = AVOID_ANGLE_DEG, xp=jnp):
+    """Whether each grasp is (nearly) the same as one of `others`: poses [K, 4, 4], others [F, 4, 4] -> bool[K].
+
+    Same: the closing-region centres (origin + finger_length / 2 along z) are at most `max_distance`
+    apart and the rotation between the two hands is at most `max_angle_deg`, counting a hand turned
+    180 deg about its approach axis as the same hand (the parallel jaw is symmetric). F = 0: all False.
+    xp: jnp, or np for host-side callers with varying F (no compile per shape).
+    """
+    poses, others = xp.asarray(poses), xp.asarray(others)
+    if poses.ndim != 3 or poses.shape[-2:] != (4, 4) or others.ndim != 3 or others.shape[-2:] != (4, 4):
+        raise ValueError(f"poses and others must have shapes [K, 4, 4] and [F, 4, 4], got {poses.shape} and {others.shape}")
+    half = 0.5 * spec.finger_length
+    centre = lambda p: p[:, :3, 3] + half * p[:, :3, 2]
+    close = xp.linalg.norm(centre(poses)[:, None] - centre(others)[None], axis=-1) <= max_distance + 1e-9
+    dots = xp.einsum("kia,fia->kfa", poses[:, :3, :3], others[:, :3, :3])  # axis-by-axis cosines [K, F, 3]
+    trace = xp.maximum(dots.sum(-1), dots[..., 2] - dots[..., 0] - dots[..., 1])  # R or R turned 180 deg about z
+    aligned = 0.5 * (trace - 1.0) >= np.cos(np.deg2rad(max_angle_deg)) - 1e-6
+    return xp.any(close & aligned, axis=-1)
+
+
 def points_in_box(points: jax.Array, box: Box, margin: float = 0.0) -> jax.Array:
     """Whether points[..., N, 3] lie in the closed boxes [...] grown by `margin` -> bool[..., N]."""
     points = _points(points)

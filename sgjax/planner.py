@@ -87,6 +87,8 @@ class PlannerConfig:
         size that fits those left, the smallest size padded when none fits, so at most one compile per
         size is ever made. Default (4,): one compile (10 objects = 4 + 4 + 2 padded to 4), so the
         first plan of a run compiles everything and later ones never stall.
+    avoid_distance, avoid_angle_deg: a Stage-1 candidate this close to a pose passed as `avoid` (e.g. a
+        grasp that already failed) is left out before Stage 2 (`gripper.near_grasps`).
     """
 
     stage1: Stage1Config = dataclasses.field(default_factory=Stage1Config)
@@ -100,6 +102,8 @@ class PlannerConfig:
     scene_bounds: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
     support_plane: tuple[float, float, float, float] | None = None
     stage1_batch_sizes: tuple[int, ...] = (4,)
+    avoid_distance: float = gripper.AVOID_DISTANCE
+    avoid_angle_deg: float = gripper.AVOID_ANGLE_DEG
 
     def __post_init__(self):
         object.__setattr__(self, "stage1_batch_sizes", tuple(sorted({int(b) for b in self.stage1_batch_sizes})))
@@ -119,6 +123,9 @@ class PlannerConfig:
             if len(plane) != 4 or not np.all(np.isfinite(plane)) or not any(plane[:3]):
                 raise ValueError(f"support_plane must be 4 finite numbers (nx, ny, nz, d), got {self.support_plane}")
             object.__setattr__(self, "support_plane", plane)
+        if self.avoid_distance < 0 or not 0 <= self.avoid_angle_deg <= 180:
+            raise ValueError(f"avoid_distance must be >= 0 and avoid_angle_deg in [0, 180], got "
+                             f"{self.avoid_distance} and {self.avoid_angle_deg}")
         if self.scene_voxel < 0:
             raise ValueError(f"scene_voxel must be >= 0 (0: no voxel grid), got {self.scene_voxel}")
         check_thresholds(self)
@@ -339,6 +346,23 @@ def _labels(labels, n: int) -> np.ndarray:
     return arr.astype(np.int64)
 
 
+def _avoid(avoid) -> np.ndarray:
+    """Poses to avoid as float64 [F, 4, 4] (None: none)."""
+    if avoid is None:
+        return np.zeros((0, 4, 4))
+    try:
+        arr = np.asarray(avoid, np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"avoid: not a numeric array ({exc})") from None
+    if arr.ndim == 2 and arr.shape == (4, 4):
+        arr = arr[None]
+    if arr.ndim != 3 or arr.shape[1:] != (4, 4):
+        raise ValueError(f"avoid must be gripper poses [F, 4, 4], got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError("avoid holds NaN or inf entries")
+    return arr
+
+
 def _viewpoint(viewpoint) -> np.ndarray:
     v = np.asarray(viewpoint if viewpoint is not None else (0.0, 0.0, 0.0), np.float64)
     if v.shape != (3,) or not np.all(np.isfinite(v)):
@@ -373,18 +397,20 @@ class Planner:
 
     # -- public entry points ------------------------------------------------------------------
 
-    def plan(self, scene_points, labels, viewpoint=(0.0, 0.0, 0.0), seed: int = 0) -> Plan:
+    def plan(self, scene_points, labels, viewpoint=(0.0, 0.0, 0.0), seed: int = 0, avoid=None) -> Plan:
         """Plan over every visible object of a scene.
 
         scene_points [N, 3] (metres, world frame); labels int [N]: the object id of each point, < 0 for
         the table/background; viewpoint [3]: camera position (orients normals). Objects with fewer
         than `min_object_points` points are skipped. Stage 1 sees each object with the rest of the
         scene as obstacles; all candidates are scored in one Stage-2 call on the whole scene.
+        avoid [F, 4, 4] (or None): gripper poses not to plan again, e.g. grasps that failed on this
+        scene; candidates within `avoid_distance` / `avoid_angle_deg` of one are left out.
         """
         start = time.perf_counter()
         scene = _cloud(scene_points, "scene_points")
         labels = _labels(labels, len(scene))
-        view = _viewpoint(viewpoint)
+        view, avoid = _viewpoint(viewpoint), _avoid(avoid)
         ids, counts = np.unique(labels[labels >= 0], return_counts=True)
         objects, skipped = [], []
         for label, count in zip(ids.tolist(), counts.tolist()):
@@ -400,34 +426,35 @@ class Planner:
                 listed = ", ".join(f"object {s['label']}: {s['points']}" for s in skipped[:8])
                 reason = f"no object with at least {self.config.min_object_points} visible points ({listed})"
             return self._empty(reason, skipped, start)
-        return self._run(scene, objects, skipped, view, seed, start)
+        return self._run(scene, objects, skipped, view, seed, start, avoid)
 
-    def plan_target(self, scene_points, target_points, viewpoint=(0.0, 0.0, 0.0), seed: int = 0) -> Plan:
+    def plan_target(self, scene_points, target_points, viewpoint=(0.0, 0.0, 0.0), seed: int = 0, avoid=None) -> Plan:
         """Plan for one given object cloud target_points [K, 3] in the scene scene_points [N, 3] (which
-        should contain the target's points: Stage 2 crops from it; None: the target alone). Target label 0."""
+        should contain the target's points: Stage 2 crops from it; None: the target alone). Target label 0.
+        avoid: as in `plan`."""
         start = time.perf_counter()
         target = _cloud(target_points, "target_points")
         scene = target if scene_points is None else _cloud(scene_points, "scene_points")
-        return self._plan_one(scene, target, scene, _viewpoint(viewpoint), seed, start)
+        return self._plan_one(scene, target, scene, _viewpoint(viewpoint), seed, start, _avoid(avoid))
 
-    def plan_masked(self, scene_points, target_mask, viewpoint=(0.0, 0.0, 0.0), seed: int = 0) -> Plan:
+    def plan_masked(self, scene_points, target_mask, viewpoint=(0.0, 0.0, 0.0), seed: int = 0, avoid=None) -> Plan:
         """Plan for the object marked by target_mask bool [N] in scene_points [N, 3] (the other points are
-        Stage 1's obstacles; Stage 2 sees the whole scene). Target label 0."""
+        Stage 1's obstacles; Stage 2 sees the whole scene). Target label 0. avoid: as in `plan`."""
         start = time.perf_counter()
         scene = _cloud(scene_points, "scene_points")
         mask = np.asarray(target_mask)
         if mask.dtype != bool or mask.shape != (len(scene),):
             raise ValueError(f"the target mask must be bool with shape [N] = ({len(scene)},), got {mask.dtype} {mask.shape}")
-        return self._plan_one(scene, scene[mask], scene[~mask], _viewpoint(viewpoint), seed, start)
+        return self._plan_one(scene, scene[mask], scene[~mask], _viewpoint(viewpoint), seed, start, _avoid(avoid))
 
     # -- internals ------------------------------------------------------------------------------
 
-    def _plan_one(self, scene, target, obstacles, view, seed, start) -> Plan:
+    def _plan_one(self, scene, target, obstacles, view, seed, start, avoid) -> Plan:
         if len(target) < self.config.min_object_points:
             info = {"label": 0, "points": len(target), "candidates": 0,
                     "reason": f"{len(target)} visible points < min_object_points {self.config.min_object_points}"}
             return self._empty(f"target: {info['reason']}", [info], start)
-        return self._run(scene, [(0, target, obstacles)], [], view, seed, start)
+        return self._run(scene, [(0, target, obstacles)], [], view, seed, start, avoid)
 
     def _empty(self, reason: str, objects: list, start: float, candidates=(), timing=None) -> Plan:
         timing = timing or {"stage1_s": 0.0, "stage2_s": 0.0, "total_s": time.perf_counter() - start, "compiled": False}
@@ -448,7 +475,15 @@ class Planner:
         points, mask, _ = pointcloud.scene_cloud(scene, cfg.max_scene_points, cfg.scene_voxel, None, cfg.scene_bounds, seed)
         return points, mask
 
-    def _run(self, scene, objects, skipped, view, seed, start) -> Plan:
+    def _kept(self, candidates: list[Candidates], avoid: np.ndarray) -> list[np.ndarray]:
+        """Per object, the candidate rows not near a pose in avoid [F, 4, 4] (all rows when F = 0)."""
+        cfg = self.config
+        if not len(avoid):
+            return [np.arange(len(c)) for c in candidates]
+        return [np.flatnonzero(~gripper.near_grasps(np.asarray(c.poses, np.float64), avoid, cfg.spec, cfg.avoid_distance,
+                                                    cfg.avoid_angle_deg, xp=np)) for c in candidates]
+
+    def _run(self, scene, objects, skipped, view, seed, start, avoid) -> Plan:
         cfg = self.config
         compiled = _compile_count()
         labels = [label for label, _, _ in objects]
@@ -465,7 +500,14 @@ class Planner:
             timing = {"stage1_s": t1 - start, "stage2_s": 0.0, "total_s": t1 - start, "compiled": _compile_count() != compiled}
             return self._empty(f"no candidates: {detail}", infos, start, candidates, timing)
 
-        obj, row = stage2_subset([len(c) for c in candidates], cfg.max_stage2_candidates)
+        kept = self._kept(candidates, avoid)
+        if not sum(len(k) for k in kept):
+            timing = {"stage1_s": t1 - start, "stage2_s": 0.0, "total_s": t1 - start, "compiled": _compile_count() != compiled}
+            reason = (f"all {n_candidates} candidates are within {cfg.avoid_distance:g} m and {cfg.avoid_angle_deg:g} deg "
+                      f"of the {len(avoid)} pose(s) to avoid")
+            return self._empty(reason, infos, start, candidates, timing)
+        obj, rank = stage2_subset([len(k) for k in kept], cfg.max_stage2_candidates)
+        row = np.asarray([kept[o][r] for o, r in zip(obj, rank)], np.int64).reshape(-1)
         m, slots = len(obj), cfg.max_stage2_candidates
         offsets = np.cumsum([0] + [len(c) for c in candidates])[:-1]
         poses = np.tile(np.eye(4, dtype=np.float32), (slots, 1, 1))
@@ -563,6 +605,7 @@ def plan(
     db: PrimitiveDB | None = None,
     config: PlannerConfig = PlannerConfig(),
     seed: int = 0,
+    avoid=None,
 ) -> Plan:
     """Plan a grasp in scene_points [N, 3]; the second argument says what to grasp:
 
@@ -570,20 +613,21 @@ def plan(
     bool [N] target mask -> `Planner.plan_masked` (the unmasked points are Stage 1's obstacles);
     bool [B, N] object masks (disjoint) -> labels 0..B-1; float [K, 3] target points -> `plan_target`.
     With model and db None, a cached default Planner is used (built once per config); otherwise a new
-    Planner is built per call (build one yourself for repeated calls).
+    Planner is built per call (build one yourself for repeated calls). avoid [F, 4, 4]: poses not to
+    plan again (see `Planner.plan`).
     """
     planner = _default_planner(config) if model is None and db is None else Planner(model, db, config)
     scene = _cloud(scene_points, "scene_points")
     what = np.asarray(object_masks_or_target_points)
     if what.dtype == bool and what.ndim == 1:
-        return planner.plan_masked(scene, what, viewpoint, seed)
+        return planner.plan_masked(scene, what, viewpoint, seed, avoid)
     if what.dtype == bool and what.ndim == 2:
         if what.shape[1] != len(scene):
             raise ValueError(f"object masks must have shape [B, N] with N = {len(scene)}, got {what.shape}")
         if np.any(what.sum(0) > 1):
             raise ValueError("object masks overlap: a point belongs to more than one object")
         labels = np.where(what.any(0), np.argmax(what, 0), -1)
-        return planner.plan(scene, labels, viewpoint, seed)
+        return planner.plan(scene, labels, viewpoint, seed, avoid)
     if what.ndim == 2:
-        return planner.plan_target(scene, what, viewpoint, seed)
-    return planner.plan(scene, what, viewpoint, seed)
+        return planner.plan_target(scene, what, viewpoint, seed, avoid)
+    return planner.plan(scene, what, viewpoint, seed, avoid)

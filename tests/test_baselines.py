@@ -234,6 +234,17 @@ def test_pointnetgpd_method(pointnetgpd_run, objects, observation):
         assert decision.info["generator"] == "gpd" and decision.info["index"] == best
         np.testing.assert_allclose(decision.pose, cands.poses[best], atol=1e-6)
         assert decision.score == pytest.approx(prob) and decision.width == pytest.approx(cands.widths[best])
+    # The harness's memory: the grasps to avoid are left out before scoring, the rest keep their order.
+    avoided = method.plan(points, labels, view, seed=3, avoid=first.pose[None])
+    cands = method.generator(points, labels, view, 3)
+    near = gripper.near_grasps(cands.poses[: cands.n].astype(np.float64), first.pose[None], SPEC, xp=np)
+    assert near.any() and avoided.info["avoided"] == near.sum()
+    assert not gripper.near_grasps(avoided.pose[None], first.pose[None], SPEC, xp=np)[0]
+    kept = baselines.without_avoided(cands, first.pose[None], SPEC)
+    assert kept.n == cands.n - near.sum() and kept.poses.shape == cands.poses.shape
+    np.testing.assert_array_equal(kept.poses[: kept.n], cands.poses[: cands.n][~near])
+    gone = baselines.without_avoided(cands, cands.poses[: cands.n], SPEC)
+    assert gone.n == 0 and gone.reason.startswith(f"all {cands.n} candidates are the same grasp")
     # Through the benchmark harness.
     run = run_scene(method, objects, 2, seed=0, index=0, config=SCENE, setting="tiny-2")
     assert 1 <= len(run.log["attempts"]) <= run.log["objects"] + 5

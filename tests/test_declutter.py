@@ -21,7 +21,9 @@ from eval.methods import (
     MethodUnavailable,
     UnknownMethod,
     make_method,
+    near_grasps,
 )
+from sgjax.gripper import GripperSpec
 from sgjax.cli import main
 
 # Small camera images keep each observation at ~60 ms; 3-4 objects keep a scene at a few seconds.
@@ -71,6 +73,22 @@ class InTheAir:
         pose[:3, :3] = np.diag([1.0, -1.0, -1.0])
         pose[:3, 3] = [0.2, 0.2, 0.3]
         return Decision(pose, 0.2, 0.5, "", timing())  # width above max_opening: clipped by the harness
+
+
+class InTheAirRemembering(InTheAir):
+    """InTheAir with the harness's memory: it does not try its one grasp again once it failed."""
+
+    name = "in-the-air-remembering"
+
+    def __init__(self):
+        self.avoid_seen = []
+
+    def plan(self, points, labels, viewpoint, seed=0, avoid=None):
+        self.avoid_seen.append(np.array(avoid))
+        decision = super().plan(points, labels, viewpoint, seed)
+        if near_grasps(decision.pose[None], avoid, GripperSpec())[0]:
+            return Decision(None, 0.0, 0.0, "my only grasp failed", timing())
+        return decision
 
 
 # ---------------------------------------------------------------------------------------------
@@ -186,6 +204,36 @@ def test_attempts_are_capped_at_objects_plus_five(objects):
     assert len(fewer.log["attempts"]) == fewer.log["objects"] + 1
 
 
+def test_the_harness_remembers_failed_grasps(objects):
+    """Each plan call gets the poses that failed so far in the scene; a method without `avoid` runs
+    without the memory; remember_failures=False turns it off."""
+    method = InTheAirRemembering()
+    run = run_scene(method, objects, 3, seed=0, index=0, config=CONFIG)
+    assert run.log["memory"] and run.log["end"] == "no_grasp" and run.log["final_reason"] == "my only grasp failed"
+    assert [a["outcome"] for a in run.log["attempts"]] == [declutter.NO_OBJECT]
+    assert [a.shape for a in method.avoid_seen] == [(0, 4, 4), (1, 4, 4)]
+    np.testing.assert_array_equal(method.avoid_seen[1][0], run.log["attempts"][0]["pose"])
+    off = run_scene(InTheAirRemembering(), objects, 3, seed=0, index=0,
+                    config=dataclasses.replace(CONFIG, remember_failures=False))
+    assert not off.log["memory"] and off.log["end"] == "attempt_cap"
+    assert not run_scene(InTheAir(), objects, 3, seed=0, index=0, config=dataclasses.replace(CONFIG, extra_attempts=0)).log["memory"]
+    assert declutter.takes_avoid(method) and not declutter.takes_avoid(InTheAir())
+
+
+@pytest.mark.parametrize("name, options", [("oracle-topdown", {"order": "highest"}), ("gpd", {})])
+def test_methods_leave_out_the_grasps_to_avoid(objects, name, options):
+    method = make_method(name, **options)
+    scene = declutter.make_benchmark_scene(objects, N_OBJECTS, 0, 0, CONFIG)
+    obs = declutter.camera_lib.observe(scene, CONFIG.camera)
+    if getattr(method, "uses_ground_truth", False):
+        method.set_scene(scene)
+    first = method.plan(obs.points, obs.point_labels, CONFIG.camera.position, 0)
+    again = method.plan(obs.points, obs.point_labels, CONFIG.camera.position, 0, avoid=np.zeros((0, 4, 4)))
+    np.testing.assert_array_equal(again.pose, first.pose)  # nothing to avoid: the same plan
+    other = method.plan(obs.points, obs.point_labels, CONFIG.camera.position, 0, avoid=first.pose[None])
+    assert other.pose is not None and not near_grasps(other.pose[None], first.pose[None], GripperSpec())[0]
+
+
 def test_no_grasp_ends_the_scene(objects):
     method = Never()
     run = run_scene(method, objects, 3, seed=0, index=0, config=CONFIG)
@@ -264,7 +312,11 @@ def test_cli_runs_on_a_user_mesh_folder_and_prints_json(tmp_path, capsys):
     assert {"GSR", "TSR", "GA", "scenes"} <= set(result) and result["scenes"] == 1
     assert result["setting"] == "my_meshes-2" and result["GA"] >= 1
     log_ = json.loads(report.scene_log_path(tmp_path / "out", "oracle-topdown", "my_meshes-2", 0, 0).read_text())
-    assert set(log_["object_names"]) <= {"my_meshes/block", "my_meshes/can"}
+    assert set(log_["object_names"]) <= {"my_meshes/block", "my_meshes/can"} and log_["memory"]
+    # --no-memory is another configuration: it refuses to resume into the same folder.
+    code = main(["declutter", "--method", "oracle-topdown", "--objects", str(folder), "--n-objects", "2",
+                 "--scenes", "1", "--out", str(tmp_path / "out"), "--quiet", "--pictures", "0", "--no-memory"])
+    assert code != 0 and "config differ" in capsys.readouterr().err
 
 
 # ---------------------------------------------------------------------------------------------

@@ -17,6 +17,7 @@ from sgjax.gripper import (
     deepened_pose,
     enlarged_region_poses,
     gripper_boxes,
+    near_grasps,
     points_in_closing_region,
     points_in_enlarged_region,
     refined_pose,
@@ -325,3 +326,40 @@ def test_swept_hand_is_the_union_of_hand_positions_along_the_approach():
     np.testing.assert_array_equal(np.asarray(swept), union)
     _, still = local_regions(local, width, SPEC, 0.005)
     assert np.sum(swept) > np.sum(np.asarray(still)) > 0  # the sweep reaches points the grasp alone does not
+
+
+def test_near_grasps_is_the_same_grasp_up_to_the_jaw_symmetry():
+    from scipy.spatial.transform import Rotation
+
+    base = np.asarray(random_pose(7), np.float64)
+    centre = base[:3, 3] + 0.5 * SPEC.finger_length * base[:3, 2]
+
+    def moved(shift_world=(0.0, 0.0, 0.0), turn_local=None):
+        """base turned by turn_local (about its closing-region centre) then shifted."""
+        pose = base.copy()
+        if turn_local is not None:
+            pose[:3, :3] = base[:3, :3] @ turn_local
+        pose[:3, 3] = centre + np.asarray(shift_world) - 0.5 * SPEC.finger_length * pose[:3, 2]
+        return pose
+
+    about = lambda axis, deg: Rotation.from_rotvec(np.deg2rad(deg) * np.asarray(axis, float)).as_matrix()
+    poses = np.stack([
+        moved(),                                   # the same pose
+        moved((0.006, 0.0, 0.008)),                # 1 cm away: still the same grasp
+        moved((0.0, 0.0, 0.0102)),                 # just over 1 cm
+        moved(turn_local=about((0, 0, 1), 180)),   # the hand turned about its approach axis: the same jaw
+        moved(turn_local=about((0, 0, 1), 194)),   # ... and 14 deg more
+        moved(turn_local=about((1, 0, 0), 14)),    # tilted 14 deg
+        moved(turn_local=about((1, 0, 0), 16)),    # tilted 16 deg
+        moved(turn_local=about((0, 1, 0), 180)),   # the approach reversed: another grasp
+        moved(turn_local=about((0, 0, 1), 90)),    # closing across: another grasp
+    ])
+    expected = [True, True, False, True, True, True, False, False, False]
+    assert near_grasps(poses, base[None], SPEC, xp=np).tolist() == expected
+    assert np.asarray(near_grasps(jnp.asarray(poses, jnp.float32), jnp.asarray(base[None], jnp.float32), SPEC)).tolist() == expected
+    assert not near_grasps(poses, np.zeros((0, 4, 4)), SPEC, xp=np).any()  # nothing to avoid
+    # Against several poses: near any one of them; looser tolerances take more.
+    assert near_grasps(poses, np.stack([poses[2], poses[7]]), SPEC, xp=np)[[2, 7]].all()
+    assert near_grasps(poses, base[None], SPEC, max_distance=0.02, max_angle_deg=20, xp=np)[[2, 6]].all()
+    with pytest.raises(ValueError, match=r"\[K, 4, 4\] and \[F, 4, 4\]"):
+        near_grasps(poses, base, SPEC, xp=np)

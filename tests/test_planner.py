@@ -15,7 +15,7 @@ from flax import nnx
 from sgjax import planner as planner_mod
 from sgjax import synthetic
 from sgjax.ernet import ERNet, ERNetConfig
-from sgjax.gripper import GripperSpec, refined_pose
+from sgjax.gripper import GripperSpec, near_grasps, refined_pose
 from sgjax.planner import Planner, PlannerConfig, decide, select_grasp
 from sgjax.superquadric import Superquadric
 
@@ -219,6 +219,33 @@ def test_forced_scores_give_each_decision(small_db, scene):
     strong = Planner(rigged([0.0, 5.0], [5.0, 5.0, 5.0]), small_db, CONFIG).plan(*scene, viewpoint=CAMERA)
     assert strong.kind == "evaluated" and strong.refine_variant is None and strong.candidate_index == first_valid
     np.testing.assert_array_equal(strong.pose, initial)
+
+
+def test_avoided_poses_are_never_planned_again(small_db, scene):
+    """`avoid` (the benchmark's memory of failed grasps): the same grasps are left out before Stage 2."""
+    strong = Planner(rigged([0.0, 5.0], [5.0, 5.0, 5.0]), small_db, CONFIG)  # first valid candidate wins
+    first = strong.plan(*scene, viewpoint=CAMERA)
+    assert first.kind == "evaluated"
+    second = strong.plan(*scene, viewpoint=CAMERA, avoid=first.pose[None])
+    assert second.kind == "evaluated" and second.n_candidates == first.n_candidates
+    all_poses = np.concatenate([c.poses for c in first.candidates])
+    near_first = near_grasps(all_poses.astype(np.float64), first.pose[None], SPEC, xp=np)
+    assert len(second.scores["eval_prob"]) == len(all_poses) - near_first.sum()  # only those were left out
+    assert not near_grasps(second.pose[None], first.pose[None], SPEC, xp=np)[0]
+    # Rows still index each object's Stage-1 candidates.
+    obj, row = second.scores["object"], second.scores["object_candidate"]
+    chosen = second.candidate_index
+    np.testing.assert_array_equal(second.pose, second.candidates[obj[chosen]].poses[row[chosen]])
+    # Every candidate avoided: no grasp, and the reason says why.
+    none = strong.plan(*scene, viewpoint=CAMERA, avoid=all_poses)
+    assert none.kind is None and none.reason.startswith(f"all {first.n_candidates} candidates are within 0.01 m and 15 deg")
+    # An empty list changes nothing; a bad one is named.
+    same = strong.plan(*scene, viewpoint=CAMERA, avoid=np.zeros((0, 4, 4)))
+    np.testing.assert_array_equal(same.pose, first.pose)
+    with pytest.raises(ValueError, match=r"avoid must be gripper poses \[F, 4, 4\]"):
+        strong.plan(*scene, avoid=np.zeros((2, 3, 4)))
+    with pytest.raises(ValueError, match="avoid holds NaN"):
+        strong.plan(*scene, avoid=np.full((1, 4, 4), np.nan))
 
 
 def test_small_objects_are_skipped_with_a_reason(planner, scene):
