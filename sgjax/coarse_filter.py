@@ -49,7 +49,8 @@ class FilterConfig:
 
     min_points: int = 50
     max_normal_angle_deg: float = 20.0
-    observed_angle_deg: float = 60.0
+    # Not 60: beyond a rounded object's silhouette the seen curve's normals lie 45-55 deg off the axis.
+    observed_angle_deg: float = 45.0
     contact_slab: float = 0.005  # metres
     collision_margin: float = 0.0  # grow the finger and palm boxes by this (metres) in (i)
     # ... and by this in (iv): a neighbour's hidden side lies beyond its observed points.

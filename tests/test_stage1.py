@@ -239,6 +239,51 @@ def test_hidden_contacts_are_judged_as_configured():
         FilterConfig(hidden_contacts="maybe")
 
 
+def _ray_cast_lying_cylinder(radius: float, length: float, yaw_deg: float, camera: np.ndarray, step: float = 0.0008):
+    """Exact depth-camera points of a cylinder lying on the table z = 0 (axis at yaw_deg about z, through
+    (0, 0, radius)): rays from `camera` through a grid of `step`, first hit on its side -> (points, axis)."""
+    yaw = np.deg2rad(yaw_deg)
+    axis, centre = np.array([np.cos(yaw), np.sin(yaw), 0.0]), np.array([0.0, 0.0, radius])
+    grid = np.mgrid[-length:length:step, -length:length:step].reshape(2, -1).T
+    d = np.c_[grid, np.full(len(grid), radius)] - camera
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    # |(o + t d - c) x axis| = radius is a quadratic in t over the components square to the axis.
+    d_perp, o_perp = d - np.outer(d @ axis, axis), (camera - centre) - ((camera - centre) @ axis) * axis
+    a, b, c = np.sum(d_perp**2, 1), 2 * d_perp @ o_perp, o_perp @ o_perp - radius**2
+    disc = b * b - 4 * a * c
+    t = (-b - np.sqrt(np.maximum(disc, 0.0))) / (2 * a)
+    pts = camera + t[:, None] * d
+    hit = (disc > 0) & (np.abs((pts - centre) @ axis) < length / 2)
+    return pts[hit].astype(np.float32), axis
+
+
+def test_contacts_beyond_a_rounded_silhouette_count_as_hidden():
+    """A 1.7 cm marker lying on the table, seen by an exact depth camera: on the side turned away, the
+    camera sees the cylinder's upper curve up to its silhouette and not its widest line, where the finger
+    closes, so those contacts' normals are ~50 deg off the closing axis. Filter (iii) must not call the
+    grasp straight across misaligned (observed_angle_deg 45: such contacts count as hidden; with 60 the
+    grasp was removed), while a grasp 30 deg off across the cylinder still fails on the seen side."""
+    camera = np.array([0.0, -0.45, 0.55])  # the benchmark camera's place relative to the table centre
+    cloud, axis = _ray_cast_lying_cylinder(0.0085, 0.12, 30.0, camera)
+    mask = jnp.ones(len(cloud), bool)
+    normals = estimate_normals(jnp.asarray(cloud), mask, jnp.asarray(camera, jnp.float32))
+    down, across = np.array([0, 0, -1.0]), np.cross([0, 0, 1.0], axis)
+    tip = np.array([0.0, 0.0, SPEC.finger_length + 0.004])  # fingertips 4 mm above the table
+    off = Rotation.from_euler("z", 30, degrees=True).as_matrix() @ across
+    poses = np.stack([grasp_frame(down, across, tip + s * axis) for s in (-0.03, 0.0, 0.03)] + [grasp_frame(down, off, tip)])
+    widths = jnp.asarray([0.042, 0.042, 0.042, 0.05])
+
+    def normal_bad(cfg):
+        res = coarse_filter(jnp.asarray(poses, jnp.float32), widths, jnp.ones(4, bool), jnp.asarray(cloud), mask, normals, cfg=cfg)
+        assert not np.asarray(res.collision_object).any() and not np.asarray(res.too_few_points).any()
+        return np.asarray(res.normal_angle).tolist()
+
+    assert FilterConfig().observed_angle_deg == 45.0
+    for mode in ("reject", "superquadric"):  # the seen side's contacts are aligned: no fit is needed
+        assert normal_bad(FilterConfig(hidden_contacts=mode)) == [False, False, False, True]
+    assert normal_bad(FilterConfig(observed_angle_deg=60.0)) == [True, True, True, True]
+
+
 def test_superquadric_contact_normals_follow_the_closing_line():
     """superquadric_contact_cos against closed forms: a sphere's normal at a line offset by h from the
     centre is sqrt(r^2 - h^2) / r along the line; a line that misses gives 0."""
