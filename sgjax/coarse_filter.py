@@ -35,7 +35,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sgjax.gripper import GripperSpec, local_regions, lowest_height, to_gripper_frame
+from sgjax.gripper import GripperSpec, local_regions, lowest_height, segment_regions, to_gripper_frame
 from sgjax.superquadric import Superquadric, log_implicit_local
 
 REASONS = ("collision_object", "too_few_points", "normal_angle", "collision_scene", "below_support")
@@ -60,6 +60,10 @@ class FilterConfig:
     # (iv) tests the hand swept continuously along that path; 1: the grasp only. (Any value > 1 gives the
     # continuous sweep: the union of >= 2 evenly spaced hand positions, each deeper than the spacing.)
     approach_steps: int = 4
+    # (iv) with a viewpoint: each obstacle point also occupies this far (metres) behind it along the
+    # camera ray, the space it hides (a neighbour's unseen side). 0: the observed points only. 4 cm
+    # took SuperGrasp's approach collisions on seen-10 from 18 to 6 of ~300 grasps (README, Stage 1).
+    shadow_depth: float = 0.04
     support_clearance: float = 0.003  # (v) every gripper box corner at least this far above the plane
     # (iii) with a single view, a finger's contact surface may be hidden (e.g. the sides of an object
     # lying flat, seen from above). See the module docstring: "reject" (the paper's reading), "accept" or
@@ -70,6 +74,8 @@ class FilterConfig:
     def __post_init__(self):
         if self.hidden_contacts not in HIDDEN_CONTACTS:
             raise ValueError(f"hidden_contacts must be one of {HIDDEN_CONTACTS}, got {self.hidden_contacts!r}")
+        if not self.shadow_depth >= 0.0:
+            raise ValueError(f"shadow_depth must be >= 0 metres, got {self.shadow_depth}")
         if self.line_samples < 2:
             raise ValueError(f"line_samples must be >= 2, got {self.line_samples}")
 
@@ -196,6 +202,7 @@ def coarse_filter(
     point_scale: jax.Array | float = 1.0,
     object_local: jax.Array | None = None,
     superquadric: Superquadric | None = None,
+    viewpoint: jax.Array | None = None,
 ) -> FilterResult:
     """Apply filters (i)-(v) to candidates of one object.
 
@@ -207,6 +214,8 @@ def coarse_filter(
     object_local: the object points already in each grasp frame [M, N, 3], if the caller has them.
     superquadric: the object's fitted superquadric (unbatched) for hidden_contacts="superquadric"; without
     it nothing can judge a grasp whose contacts are all hidden, and such grasps are removed (as "reject").
+    viewpoint [3]: the camera that saw the scene; with cfg.shadow_depth > 0, (iv) also tests the space
+    each obstacle point hides (`sgjax.gripper.segment_regions`).
     """
     hidden_cos = None
     if cfg.hidden_contacts == "superquadric" and superquadric is not None:
@@ -226,7 +235,15 @@ def coarse_filter(
         # back over approach_clearance (every hand position on that path). At the grasp, an obstacle
         # between the fingers would be squeezed too (the scene holds no point of the target itself).
         sweep = cfg.approach_clearance if cfg.approach_steps > 1 else 0.0
-        in_closing, in_hand = local_regions(scene_local, widths, spec, cfg.obstacle_margin, sweep)
+        if cfg.shadow_depth > 0.0 and viewpoint is not None:
+            ray = scene_points - viewpoint
+            ray = ray / jnp.maximum(jnp.linalg.norm(ray, axis=-1, keepdims=True), 1e-9)
+            ray_local = jnp.einsum("mji,sj->msi", poses[:, :3, :3], ray)  # [M, S, 3]
+            in_closing, in_hand = segment_regions(
+                scene_local, ray_local, cfg.shadow_depth, widths, spec, cfg.obstacle_margin, sweep
+            )
+        else:
+            in_closing, in_hand = local_regions(scene_local, widths, spec, cfg.obstacle_margin, sweep)
         collision_scene = jnp.any((in_closing | in_hand) & scene_mask, -1)
     below = below_plane(poses, widths, support_plane, spec, cfg)
     keep = valid & ~collision_object & ~too_few & ~normal_bad & ~collision_scene & ~below

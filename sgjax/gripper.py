@@ -325,6 +325,56 @@ def local_regions(
     return closing, finger | palm
 
 
+def _segments_hit_box(start, direction, length, lo, hi) -> jax.Array:
+    """Slab test: segments start + t * direction, 0 <= t <= length, against axis-aligned boxes [lo, hi].
+
+    start, direction [..., 3]; length broadcastable to [...]; lo, hi [..., 3] -> bool [...]."""
+    # A zero component becomes a tiny one of the same sign: its slab then gives t of +-huge, i.e. the
+    # whole line inside (start within the slab) or nowhere (start outside it).
+    tiny = 1e-12
+    safe = jnp.where(jnp.abs(direction) < tiny, jnp.where(direction < 0, -tiny, tiny), direction)
+    t1, t2 = (lo - start) / safe, (hi - start) / safe
+    enter = jnp.maximum(jnp.max(jnp.minimum(t1, t2), -1), 0.0)
+    leave = jnp.minimum(jnp.min(jnp.maximum(t1, t2), -1), length)
+    return enter <= leave
+
+
+def segment_regions(
+    local: jax.Array,
+    direction: jax.Array,
+    length: float,
+    width: jax.Array | float,
+    spec: GripperSpec,
+    margin: float = 0.0,
+    sweep: float = 0.0,
+) -> tuple[jax.Array, jax.Array]:
+    """`local_regions` for segments instead of points: each gripper-frame point extended by `length`
+    along its unit `direction` (e.g. the camera ray behind an observed point: space the camera cannot
+    see, which may be occupied).
+
+    local, direction [..., N, 3]; width broadcastable to [...] -> (segment meets the closing region
+    bool[..., N], segment meets a finger or the palm bool[..., N]), the boxes exactly as in
+    `local_regions` (length 0 gives its point test).
+    """
+    local = _points(local, "local")
+    half_w = 0.5 * jnp.asarray(width, local.dtype)[..., None, None]  # [..., 1, 1]
+    zeros = jnp.zeros_like(half_w)
+    box = lambda x0, x1, y, z0, z1: (
+        jnp.concatenate([x0 + zeros, -y + zeros, z0 + zeros], -1),
+        jnp.concatenate([x1 + zeros, y + zeros, z1 + zeros], -1),
+    )
+    hit = lambda lo_hi: _segments_hit_box(local, direction, length, *lo_hi)
+    fy = 0.5 * spec.finger_width
+    closing = hit(box(-half_w, half_w, fy, 0.0, spec.finger_length))
+    fx0, fx1 = half_w - margin, half_w + spec.finger_thickness + margin
+    fz0, fz1 = -margin - sweep, spec.finger_length + margin
+    right = hit(box(fx0, fx1, fy + margin, fz0, fz1))
+    left = hit(box(-fx1, -fx0, fy + margin, fz0, fz1))
+    px, py = (0.5 * s + margin for s in spec.palm_size[:2])
+    palm = hit(box(-px + zeros, px + zeros, py, -spec.palm_size[2] - margin - sweep, margin))
+    return closing, left | right | palm
+
+
 def finger_stops(local, spec: GripperSpec, valid=None, xp=jnp):
     """The paper's width rule in the gripper frame: a finger face sweeping along x from fully open stops
     where its Euclidean distance to some point reaches delta (`spec.contact_threshold`).

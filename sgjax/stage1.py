@@ -180,11 +180,14 @@ def _pipeline(obj, obj_mask, scene, scene_mask, viewpoint, plane, scale, db: Mat
         local = local.at[..., 0].add(-shift[..., None])
     normals = estimate_normals(obj, obj_mask, viewpoint, cfg.filter.normal_neighbours)
 
-    def one(p, w, v, o, om, nrm, s, sm, pl, sc, lc, sq):
+    def one(p, w, v, o, om, nrm, s, sm, pl, sc, lc, sq, view):
         s, sm = (s, sm) if has_scene else (None, None)
-        return coarse_filter(p, w, v, o, om, nrm, s, sm, cfg.spec, cfg.filter, pl, sc, object_local=lc, superquadric=sq)
+        view = view if has_view else None
+        return coarse_filter(p, w, v, o, om, nrm, s, sm, cfg.spec, cfg.filter, pl, sc, object_local=lc, superquadric=sq,
+                             viewpoint=view)
 
-    args = (poses, widths, valid, obj, obj_mask, normals, scene, scene_mask, plane, scale, local, fit.superquadric)
+    args = (poses, widths, valid, obj, obj_mask, normals, scene, scene_mask, plane, scale, local, fit.superquadric,
+            viewpoint)
     filt = jax.vmap(one)(*args)
     return {
         "fit": fit,

@@ -328,6 +328,32 @@ def test_swept_hand_is_the_union_of_hand_positions_along_the_approach():
     assert np.sum(swept) > np.sum(np.asarray(still)) > 0  # the sweep reaches points the grasp alone does not
 
 
+def test_segment_regions_are_local_regions_along_the_segments():
+    from sgjax.gripper import local_regions, segment_regions
+
+    rng = np.random.default_rng(5)
+    local = jnp.asarray(rng.uniform([-0.07, -0.03, -0.12], [0.07, 0.03, 0.07], (3000, 3)), jnp.float32)
+    direction = rng.normal(size=(3000, 3))
+    direction[:300, 1:] = 0.0  # axis-parallel segments take the slab test's zero-component branch
+    direction = jnp.asarray(direction / np.linalg.norm(direction, axis=1, keepdims=True), jnp.float32)
+    width, margin, sweep, length = 0.05, 0.005, 0.05, 0.03
+    for got, want in zip(segment_regions(local, direction, 0.0, width, SPEC, margin, sweep),
+                         local_regions(local, width, SPEC, margin, sweep)):
+        np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
+    # A segment meets a box exactly when some point along it lies inside: sample them densely.
+    closing, hand = (np.asarray(r) for r in segment_regions(local, direction, length, width, SPEC, margin, sweep))
+    dense_c, dense_h = np.zeros(len(local), bool), np.zeros(len(local), bool)
+    for t in np.linspace(0.0, length, 601):
+        c, h = local_regions(local + t * direction, width, SPEC, margin, sweep)
+        dense_c |= np.asarray(c)
+        dense_h |= np.asarray(h)
+    # Dense sampling may miss a corner clipped by less than its 0.05 mm step; nothing more.
+    assert np.sum(closing != dense_c) <= 2 and np.sum(hand != dense_h) <= 2
+    assert np.all(dense_c <= closing) and np.all(dense_h <= hand)
+    still = np.asarray(local_regions(local, width, SPEC, margin, sweep)[1])
+    assert np.sum(hand) > np.sum(still)  # the segments reach boxes their start points miss
+
+
 def test_near_grasps_is_the_same_grasp_up_to_the_jaw_symmetry():
     from scipy.spatial.transform import Rotation
 

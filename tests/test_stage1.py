@@ -200,6 +200,46 @@ def test_each_filter_removes_exactly_its_case():
     assert not bool(padded.keep[0])
 
 
+def test_shadow_depth_blocks_a_finger_in_a_neighbours_hidden_side():
+    """Filter (iv) with shadow_depth: a neighbour is seen only on its camera-facing faces; a finger that
+    enters it through a hidden face touches no observed point, but it does enter the space they hide."""
+    from sgjax.gripper import local_regions, to_gripper_frame
+
+    camera = np.array([0.4, -0.45, 0.55])
+
+    def box(lo, hi, n, seen_only):
+        mesh = trimesh.creation.box(extents=np.subtract(hi, lo))
+        mesh.apply_translation(0.5 * np.add(lo, hi))
+        pts, face = trimesh.sample.sample_surface(mesh, n, seed=0)
+        if seen_only:  # a convex box: back-face culling is exactly what the camera sees
+            pts = pts[np.sum(mesh.face_normals[face] * (camera - pts), 1) > 0]
+        return jnp.asarray(pts, jnp.float32)
+
+    target = box([-0.015] * 3, [0.015] * 3, 3000, False)  # a 3 cm cube
+    mask = jnp.ones(len(target), bool)
+    normals = estimate_normals(target, mask, jnp.asarray(camera))
+    # From +y towards the camera, closing along x: the +x finger's tip ends 1.5 cm past the cube.
+    pose = jnp.asarray(grasp_frame(np.array([0, -1.0, 0]), np.array([1.0, 0, 0]), np.array([0, 0.02, 0]))[None],
+                       jnp.float32)
+    width, valid, view = jnp.full(1, 0.05), jnp.ones(1, bool), jnp.asarray(camera, jnp.float32)
+
+    def kept(shift, depth):
+        lo, hi = np.array([0.015, -0.07 + shift, -0.03]), np.array([0.07, -0.022 + shift, 0.025])
+        seen = box(lo, hi, 4000, True)  # top, -y and +x faces; the -x and +y faces face away
+        result = coarse_filter(pose, width, valid, target, mask, normals, seen, jnp.ones(len(seen), bool),
+                               cfg=FilterConfig(shadow_depth=depth), viewpoint=view)
+        inside = np.random.default_rng(0).uniform(lo, hi, (20000, 3))
+        closing, hand = local_regions(to_gripper_frame(jnp.asarray(inside, jnp.float32), pose[0]), 0.05, SPEC,
+                                      0.005, 0.05)
+        return bool(result.keep[0]), bool(jnp.any(closing | hand))
+
+    assert kept(0.0, 0.0) == (True, True)  # the whole neighbour is in the way, but no observed point is
+    assert kept(0.0, 0.02) == (False, True)  # 2 cm behind its top face reaches the finger
+    assert kept(-0.04, 0.02) == (True, False)  # 4 cm further off, the shadow stays clear of the hand
+    with pytest.raises(ValueError, match="shadow_depth"):
+        FilterConfig(shadow_depth=-0.01)
+
+
 def test_hidden_contacts_are_judged_as_configured():
     """Filter (iii) on a lying flat box seen only from above: the fingers' contact sides are hidden."""
     half = (0.05, 0.015, 0.0075)  # 10 x 3 x 1.5 cm, like a knife's handle
@@ -436,6 +476,31 @@ def test_scene_cloud_removes_grasps_through_the_table(stage):
     # No surviving gripper reaches below the table: the fingertips stay above z = 0.
     tips = with_table.poses[:, :3, 3] + SPEC.finger_length * with_table.poses[:, :3, 2]
     assert np.all(tips[:, 2] > -1e-3)
+
+
+def test_stage1_keeps_hands_out_of_the_space_a_neighbour_hides(stage):
+    """End to end, (iv) tests each obstacle point's camera-ray shadow (FilterConfig.shadow_depth)."""
+    from sgjax.gripper import segment_regions, to_gripper_frame
+
+    cloud, _ = single_view(Primitive("cuboid", (0.09, 0.054, 0.027)))
+    # A box 8 mm beyond the target's end, between it and the camera: the side facing the target is
+    # hidden. Without the shadow, Stage 1 keeps ~50 grasps whose fingers reach into it from that side.
+    lo, hi = np.array([0.16, -0.05, 0.0]), np.array([0.21, 0.05, 0.035])
+    mesh = trimesh.creation.box(extents=hi - lo)
+    mesh.apply_translation(0.5 * (lo + hi))
+    pts, face = trimesh.sample.sample_surface(mesh, 6000, seed=1)
+    neighbour = pts[np.sum(mesh.face_normals[face] * (CAMERA - pts), 1) > 0]
+    found = stage(cloud, np.concatenate([cloud, neighbour]), viewpoint=CAMERA)
+    cfg = stage.config.filter
+    assert cfg.shadow_depth > 0 and found.counts["collision_scene"] > 0 and len(found) > 0
+    ray = (neighbour - CAMERA) / np.linalg.norm(neighbour - CAMERA, axis=1, keepdims=True)
+    poses = jnp.asarray(found.poses, jnp.float32)
+    local = to_gripper_frame(jnp.asarray(neighbour, jnp.float32), poses)  # [K, S, 3]
+    ray_local = jnp.einsum("kji,sj->ksi", poses[:, :3, :3], jnp.asarray(ray, jnp.float32))
+    sweep = cfg.approach_clearance if cfg.approach_steps > 1 else 0.0
+    closing, hand = segment_regions(local, ray_local, cfg.shadow_depth, jnp.asarray(found.widths), SPEC,
+                                    cfg.obstacle_margin, sweep)
+    assert not np.any(np.asarray(closing | hand))  # no kept hand enters a neighbour point's shadow
 
 
 def test_no_recompile_and_deterministic(stage):
