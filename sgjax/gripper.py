@@ -325,17 +325,18 @@ def local_regions(
     return closing, finger | palm
 
 
-def _segments_hit_box(start, direction, length, lo, hi) -> jax.Array:
+def _segments_hit_box(start, inv_direction, length, lo, hi) -> jax.Array:
     """Slab test: segments start + t * direction, 0 <= t <= length, against axis-aligned boxes [lo, hi].
 
-    start, direction [..., 3]; length broadcastable to [...]; lo, hi [..., 3] -> bool [...]."""
-    # A zero component becomes a tiny one of the same sign: its slab then gives t of +-huge, i.e. the
-    # whole line inside (start within the slab) or nowhere (start outside it).
-    tiny = 1e-12
-    safe = jnp.where(jnp.abs(direction) < tiny, jnp.where(direction < 0, -tiny, tiny), direction)
-    t1, t2 = (lo - start) / safe, (hi - start) / safe
-    enter = jnp.maximum(jnp.max(jnp.minimum(t1, t2), -1), 0.0)
-    leave = jnp.minimum(jnp.min(jnp.maximum(t1, t2), -1), length)
+    start, inv_direction: per-axis sequences of 3 arrays [...] (1 / direction); length, lo, hi: per-axis
+    bounds broadcastable to [...] -> bool [...]. Per-axis arrays, not [..., 3], so that XLA fuses the
+    whole test into one loop over the candidate x point pairs (20x faster on CPU than reducing a last
+    axis of 3)."""
+    enter, leave = 0.0, length
+    for a in range(3):
+        t1, t2 = (lo[a] - start[a]) * inv_direction[a], (hi[a] - start[a]) * inv_direction[a]
+        enter = jnp.maximum(enter, jnp.minimum(t1, t2))
+        leave = jnp.minimum(leave, jnp.maximum(t1, t2))
     return enter <= leave
 
 
@@ -357,21 +358,21 @@ def segment_regions(
     `local_regions` (length 0 gives its point test).
     """
     local = _points(local, "local")
-    half_w = 0.5 * jnp.asarray(width, local.dtype)[..., None, None]  # [..., 1, 1]
-    zeros = jnp.zeros_like(half_w)
-    box = lambda x0, x1, y, z0, z1: (
-        jnp.concatenate([x0 + zeros, -y + zeros, z0 + zeros], -1),
-        jnp.concatenate([x1 + zeros, y + zeros, z1 + zeros], -1),
-    )
-    hit = lambda lo_hi: _segments_hit_box(local, direction, length, *lo_hi)
+    start = [local[..., a] for a in range(3)]
+    # A zero component becomes a tiny one of the same sign: its slab then gives t of +-huge, i.e. the
+    # whole line inside (start within the slab) or nowhere (start outside it).
+    tiny = 1e-12
+    inv = [1.0 / jnp.where(jnp.abs(d) < tiny, jnp.where(d < 0, -tiny, tiny), d) for d in (direction[..., a] for a in range(3))]
+    hit = lambda lo, hi: _segments_hit_box(start, inv, length, lo, hi)
+    half_w = 0.5 * jnp.asarray(width, local.dtype)[..., None]  # [..., 1]
     fy = 0.5 * spec.finger_width
-    closing = hit(box(-half_w, half_w, fy, 0.0, spec.finger_length))
+    closing = hit((-half_w, -fy, 0.0), (half_w, fy, spec.finger_length))
     fx0, fx1 = half_w - margin, half_w + spec.finger_thickness + margin
     fz0, fz1 = -margin - sweep, spec.finger_length + margin
-    right = hit(box(fx0, fx1, fy + margin, fz0, fz1))
-    left = hit(box(-fx1, -fx0, fy + margin, fz0, fz1))
+    right = hit((fx0, -fy - margin, fz0), (fx1, fy + margin, fz1))
+    left = hit((-fx1, -fy - margin, fz0), (-fx0, fy + margin, fz1))
     px, py = (0.5 * s + margin for s in spec.palm_size[:2])
-    palm = hit(box(-px + zeros, px + zeros, py, -spec.palm_size[2] - margin - sweep, margin))
+    palm = hit((-px, -py, -spec.palm_size[2] - margin - sweep), (px, py, margin))
     return closing, left | right | palm
 
 
