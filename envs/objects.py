@@ -18,8 +18,14 @@ Object sets (`load_object_set(name)`):
     benchmark.
   * "all" = every set above but tiny (everything `sgjax objects prepare` builds by default).
   * any folder of .obj/.stl/.ply meshes in metres (searched recursively): source "user", no size filter.
-A mesh that cannot be prepared is skipped, reported, and recorded in
-`cache_dir("objects", "sets", SET)/failures.json`; its failure is cached too (`retry_failed=True` retries).
+A mesh that cannot be prepared is reported and recorded in `cache_dir("objects", "sets", SET)/failures.json`.
+A default set (`OBJECT_SETS`) never shrinks silently: `load_object_set` raises `ObjectSetError` naming every
+member that failed and why. A folder of the user's may lose bad meshes: they are skipped with a warning and
+listed in the benchmark's logs and tables (`object_set_identity`).
+A mesh's own failure (unreadable, wrong units, no solid piece) is cached beside the prepared assets with
+the environment it happened in (`prep_environment`: the versions of the preparing libraries); it is tried
+again when that environment changes or with `retry_failed=True`. A failure of the environment itself (a
+library that cannot be imported or loaded, out of memory) is never recorded: fixing the environment fixes it.
 """
 
 from __future__ import annotations
@@ -114,6 +120,47 @@ class RecordedFailure(MeshPrepError):
     """The mesh failed in an earlier run (its failure is cached); `retry_failed=True` tries again."""
 
 
+class PrepEnvironmentError(MeshPrepError):
+    """Preparation failed because of the environment (a library missing or not loadable), not the mesh;
+    such failures are never recorded."""
+
+
+class ObjectSetError(ValueError):
+    """A default object set lost members: names every failed object and the cause."""
+
+
+# Exceptions that say the environment is broken, not the mesh (ImportError covers a shared library that
+# does not load, e.g. open3d without libusb-1.0).
+ENVIRONMENT_ERRORS = (ImportError, MemoryError)
+PREP_LIBRARIES = ("trimesh", "fast_simplification", "coacd", "numpy", "scipy")
+
+
+@functools.lru_cache(maxsize=1)
+def prep_environment() -> dict[str, str]:
+    """The versions of the libraries a preparation runs through (and PREP_VERSION): a recorded failure is
+    retried when any of them changed since it was recorded."""
+    from importlib import metadata
+
+    versions = {"prep_version": str(meshprep.PREP_VERSION)}
+    for name in PREP_LIBRARIES:
+        try:
+            versions[name] = metadata.version(name.replace("_", "-"))
+        except metadata.PackageNotFoundError:
+            versions[name] = "missing"
+    return versions
+
+
+def object_set_identity(name: str, assets: Sequence["ObjectAsset"], skipped: Sequence[str] = ()) -> dict:
+    """What results record about the objects they ran on: {"name", "size", "hash", "skipped"}.
+
+    hash: the first 12 hex digits of the SHA-1 of the sorted member names, one per line; two runs with
+    the same hash drew their scenes from the same objects.
+    """
+    names = sorted(a.name for a in assets)
+    digest = hashlib.sha1("\n".join(names).encode()).hexdigest()[:12]
+    return {"name": name, "size": len(names), "hash": digest, "skipped": sorted(skipped)}
+
+
 class MeshSource(NamedTuple):
     """A mesh file to prepare, and the name and source its asset gets."""
 
@@ -128,6 +175,7 @@ class PrepFailure:
     path: str
     reason: str
     cached: bool = False  # the failure was recorded by an earlier run
+    environment: bool = False  # the environment failed (a library), not the mesh: not recorded
 
 
 @dataclasses.dataclass
@@ -227,20 +275,37 @@ def prepare_mesh(
     asset = read_asset(folder)
     if asset is not None:
         return dataclasses.replace(asset, name=source.name, source=source.source), True
-    if failed.exists() and not retry_failed:
-        raise RecordedFailure(json.loads(failed.read_text())["reason"])
+    if not retry_failed:
+        recorded = _recorded_failure(failed)
+        if recorded is not None:
+            raise RecordedFailure(recorded)
     try:
         _build_asset(source, key, config, folder)
-    except MemoryError:  # the machine's problem, not the mesh's: do not record it
-        raise
+    except ENVIRONMENT_ERRORS as exc:  # the machine's problem, not the mesh's: do not record it
+        raise PrepEnvironmentError(
+            f"{source.path}: cannot be prepared in this environment ({type(exc).__name__}: {exc})"
+        ) from exc
     except Exception as exc:
         reason = str(exc) if isinstance(exc, MeshPrepError) else f"{type(exc).__name__}: {exc}"
         if source.path not in reason:
             reason = f"{source.path}: {reason}"
-        atomic_write(failed, lambda tmp: Path(tmp).write_text(json.dumps({"path": source.path, "reason": reason})))
+        record = {"path": source.path, "reason": reason, "environment": prep_environment()}
+        atomic_write(failed, lambda tmp: Path(tmp).write_text(json.dumps(record)))
         raise MeshPrepError(reason) from exc
     failed.unlink(missing_ok=True)
     return dataclasses.replace(read_asset(folder), name=source.name, source=source.source), False
+
+
+def _recorded_failure(path: Path) -> str | None:
+    """The reason recorded in a `.failed.json`, or None when there is none or it was recorded in another
+    environment (other library versions: the failure may be gone, so the mesh is tried again)."""
+    try:
+        record = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    if record.get("environment") != prep_environment():
+        return None
+    return record.get("reason", "failed in an earlier run")
 
 
 def _build_asset(source: MeshSource, key: str, config: PrepConfig, folder: Path) -> None:
@@ -277,13 +342,13 @@ def _build_asset(source: MeshSource, key: str, config: PrepConfig, folder: Path)
 
 
 def _prepare_worker(source: MeshSource, config: PrepConfig, retry_failed: bool):
-    """Pool entry point -> (asset | None, cached, error | None); never raises for a bad mesh, so one
-    file cannot stop the run."""
+    """Pool entry point -> (asset | None, cached, error | None, environment); never raises for a bad
+    mesh, so one file cannot stop the run."""
     try:
         asset, cached = prepare_mesh(source, config, retry_failed)
-        return asset, cached, None
+        return asset, cached, None, False
     except MeshPrepError as exc:
-        return None, isinstance(exc, RecordedFailure), str(exc)
+        return None, isinstance(exc, RecordedFailure), str(exc), isinstance(exc, PrepEnvironmentError)
 
 
 def prepare_meshes(
@@ -315,9 +380,9 @@ def prepare_meshes(
             key = None
         asset = read_asset(prepared_root() / key) if key else None
         if asset is not None:  # cache hits without a process round trip
-            results[i] = (dataclasses.replace(asset, name=source.name, source=source.source), True, None)
+            results[i] = (dataclasses.replace(asset, name=source.name, source=source.source), True, None, False)
         elif cached_only:
-            results[i] = (None, False, "missing")
+            results[i] = (None, False, "missing", False)
         else:
             todo.append(i)
     bar = tqdm(total=len(todo), desc="preparing objects", unit="mesh", disable=not progress or not todo)
@@ -339,14 +404,14 @@ def prepare_meshes(
 
     report = PrepReport(assets=[], prepared=[], cached=[], failures=[])
     for i, source in enumerate(sources):
-        asset, cached, error = results[i]
+        asset, cached, error, environment = results[i]
         if asset is not None:
             report.assets.append(asset)
             (report.cached if cached else report.prepared).append(source.name)
         elif error == "missing":
             report.missing.append(source.name)
         else:
-            report.failures.append(PrepFailure(source.name, source.path, error, cached=cached))
+            report.failures.append(PrepFailure(source.name, source.path, error, cached, environment))
     if report_path is not None:
         report.report_path = str(report_path)
         payload = {"failures": [dataclasses.asdict(f) for f in report.failures]}
@@ -561,11 +626,33 @@ def prepare_object_set(
     )
 
 
-def load_object_set(name: str, **kwargs) -> list[ObjectAsset]:
+def load_object_set(name: str, *, strict: bool | None = None, **kwargs) -> list[ObjectAsset]:
     """The prepared assets of object set `name`, preparing what is not cached yet (kwargs as for
-    `prepare_object_set`). Meshes that fail are skipped with a warning naming them."""
+    `prepare_object_set`).
+
+    strict (default: True for the named sets in OBJECT_SETS, False for a folder): a member that fails
+    raises ObjectSetError naming each failed object and its cause, so a default set never shrinks
+    silently. Not strict: failed meshes are skipped with a warning naming them (the benchmark lists them
+    in its results).
+    """
+    return load_object_set_report(name, strict=strict, **kwargs).assets
+
+
+def load_object_set_report(name: str, *, strict: bool | None = None, **kwargs) -> PrepReport:
+    """As `load_object_set`, returning the whole PrepReport (assets and what was skipped)."""
+    strict = name in OBJECT_SETS if strict is None else strict
     report = prepare_object_set(name, **kwargs)
     if report.failures:
         listing = "; ".join(f"{f.name}: {f.reason}" for f in report.failures)
+        if strict:
+            hint = (
+                "fix the environment (the causes above) and run again"
+                if any(f.environment for f in report.failures)
+                else "fix or remove the meshes; `sgjax objects prepare --retry-failed` tries them again"
+            )
+            raise ObjectSetError(
+                f"object set {name!r}: {len(report.failures)} of {len(report.failures) + len(report.assets)} "
+                f"member(s) could not be prepared ({hint}): {listing}"
+            )
         warnings.warn(f"object set {name!r}: skipped {len(report.failures)} mesh(es): {listing}", stacklevel=2)
-    return report.assets
+    return report

@@ -55,15 +55,20 @@ class BenchmarkResult:
 
 
 def resolve_objects(setting: declutter.Setting, objects: str | None = None, progress: bool = False):
-    """(assets, set label) for a setting: its object split, or the set / folder `objects` instead."""
-    from envs.objects import OBJECT_SETS, load_object_set
+    """(assets, set label, identity) for a setting: its object split, or the set / folder `objects`.
+
+    A named set that lost a member raises `envs.objects.ObjectSetError`; a folder may skip bad meshes,
+    and identity (`envs.objects.object_set_identity`) lists them so the results say so.
+    """
+    from envs.objects import OBJECT_SETS, load_object_set_report, object_set_identity
 
     name = setting.object_set if objects is None else objects
-    assets = load_object_set(name, progress=progress)
-    if not assets:
+    report = load_object_set_report(name, progress=progress)
+    if not report.assets:
         raise ValueError(f"object set {name!r} has no usable object (see `sgjax objects prepare`)")
     label = name if name in OBJECT_SETS else Path(os.path.expanduser(name)).resolve().name or "user"
-    return assets, label
+    identity = object_set_identity(label, report.assets, [f.name for f in report.failures])
+    return report.assets, label, identity
 
 
 def machine_label() -> str:
@@ -157,9 +162,12 @@ def run_benchmark(
     else:
         instance, name = method, method.name
     if object_assets is not None:
+        from envs.objects import object_set_identity
+
         assets, label = list(object_assets), objects or "objects"
+        identity = object_set_identity(label, assets)
     else:
-        assets, label = resolve_objects(chosen, objects, progress)
+        assets, label, identity = resolve_objects(chosen, objects, progress)
     setting_label = f"{label}-{n}"
     # Built before the logs are read: its settings are part of the resume key.
     instance = instance or make_method(name, **options)
@@ -184,6 +192,7 @@ def run_benchmark(
     for index in bar:
         run = declutter.run_scene(instance, assets, n, seed, index, config, setting_label)
         run.log["key"] = key
+        run.log["object_set"] = identity  # which objects, how many, and any skipped: shown in the tables
         if index < pictures:  # before the log: a scene with a log is finished, picture included
             path = report.picture_path(out, name, setting_label, seed, index)
             report.draw_scene(path, run.first_observation, run.log, config.gripper, config.scene.workspace_size)

@@ -109,13 +109,41 @@ def result_rows(logs: Iterable[Mapping]) -> list[dict]:
     for (method, setting, seed), group in _group(logs).items():
         summary = metrics.summarize(group)
         timing = metrics.timing_summary(group)
-        row = {"method": method, "setting": setting, "seed": seed, **summary.as_dict()}
+        row = {"method": method, "setting": setting, "seed": seed, **summary.as_dict(), **_objects_columns(group)}
         for key, (mean, std, _) in timing.items():
             row[f"{key}_mean"], row[f"{key}_std"] = mean, std
         rows.append(row)
     methods, settings = _method_order(r["method"] for r in rows), _setting_order(r["setting"] for r in rows)
     rows.sort(key=lambda r: (methods.index(r["method"]), settings.index(r["setting"]), r["seed"]))
     return rows
+
+
+def _objects_columns(group: Iterable[Mapping]) -> dict:
+    """The object set a group of scenes ran on: {"object_set", "objects_n", "objects_hash", "skipped"}
+    ("?" for logs written before sets were recorded; "mixed" if the scenes disagree)."""
+    identities = {json.dumps(log.get("object_set"), sort_keys=True) for log in group}
+    if len(identities) > 1:
+        return {"object_set": "mixed", "objects_n": "mixed", "objects_hash": "mixed", "skipped": ""}
+    identity = json.loads(identities.pop()) if identities else None
+    if not identity:
+        return {"object_set": "?", "objects_n": "?", "objects_hash": "?", "skipped": ""}
+    return {
+        "object_set": identity["name"],
+        "objects_n": identity["size"],
+        "objects_hash": identity["hash"],
+        "skipped": " ".join(identity.get("skipped", [])),
+    }
+
+
+def objects_markdown(rows: list[dict]) -> str:
+    """One line per setting: the object set its scenes came from (name, size, hash, skipped meshes)."""
+    lines = []
+    for setting in _setting_order(r["setting"] for r in rows):
+        seen = {(r["object_set"], r["objects_n"], r["objects_hash"], r["skipped"]) for r in rows if r["setting"] == setting}
+        for name, size, digest, skipped in sorted(seen, key=str):
+            note = f"; **skipped: {skipped}**" if skipped else ""
+            lines.append(f"- {setting}: object set `{name}`, {size} objects, names hash `{digest}`{note}")
+    return "\n".join(lines)
 
 
 def percent(value: float | None) -> str:
@@ -198,6 +226,8 @@ def write_tables(out: str | os.PathLike, machine: str = "") -> dict[str, Path]:
         "GSR = successes / attempts, TSR = successes / objects, GA = total attempts, N = scenes "
         "(attempts per scene capped at objects + 5).\n\n"
         f"{table_i_markdown(rows)}\n\n"
+        "Objects (a hash over the member names: equal hashes, equal objects):\n\n"
+        f"{objects_markdown(rows)}\n\n"
         f"## Planning time per grasp (Table III style{note})\n\n"
         "Mean ± std over the executed grasps' plan calls (wall seconds; JIT compilation excluded by a "
         "warm-up call).\n\n"

@@ -127,13 +127,16 @@ def load_cloud(path: str | os.PathLike) -> np.ndarray:
 
 
 def _read_pcd(path: str) -> np.ndarray:
-    try:
-        import open3d as o3d
-    except ImportError as exc:  # e.g. a missing system library such as libusb-1.0
-        raise CloudError(f"{path}: reading .pcd needs open3d, which failed to import ({exc})") from None
     with open(path, "rb") as fh:
         if not fh.read(256).lstrip().startswith((b"#", b"VERSION", b"FIELDS")):
             raise CloudError(f"{path}: not a PCD file (bad header)")
+    try:
+        import open3d as o3d
+    except ImportError as exc:  # e.g. a missing system library such as libusb-1.0
+        raise CloudError(
+            f"{path}: reading .pcd needs open3d, which failed to import ({exc}); on Linux open3d needs the "
+            "system library libusb-1.0 (apt-get install libusb-1.0-0). .npy and .ply clouds need neither."
+        ) from None
     cloud = o3d.io.read_point_cloud(path, format="pcd")
     return np.asarray(cloud.points)
 

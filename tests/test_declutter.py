@@ -263,6 +263,12 @@ def test_benchmark_resumes_and_writes_tables_and_pictures(tmp_path, objects):
     csv_text = (tmp_path / "results.csv").read_text()
     assert csv_text.startswith("method,setting,seed,GSR,TSR,GA,scenes") and "oracle-topdown,tiny-2,0," in csv_text
     assert "| oracle-topdown |" in (tmp_path / "results.md").read_text()
+    # Every table says which objects it ran on.
+    identity = second.logs[0]["object_set"]
+    assert identity["size"] == len(objects) and identity["name"] == "tiny"
+    assert f"tiny-2: object set `tiny`, {len(objects)} objects, names hash `{identity['hash']}`" in (
+        tmp_path / "results.md").read_text()
+    assert f",tiny,{len(objects)},{identity['hash']}," in csv_text
     assert second.as_dict()["GA"] == second.summary.attempts
     # A log written under other settings is not silently reused.
     with pytest.raises(ValueError, match="different configuration"):
@@ -313,6 +319,7 @@ def test_cli_runs_on_a_user_mesh_folder_and_prints_json(tmp_path, capsys):
     assert result["setting"] == "my_meshes-2" and result["GA"] >= 1
     log_ = json.loads(report.scene_log_path(tmp_path / "out", "oracle-topdown", "my_meshes-2", 0, 0).read_text())
     assert set(log_["object_names"]) <= {"my_meshes/block", "my_meshes/can"} and log_["memory"]
+    assert log_["object_set"]["size"] == 2 and log_["object_set"]["skipped"] == []
     # --no-memory is another configuration: it refuses to resume into the same folder.
     code = main(["declutter", "--method", "oracle-topdown", "--objects", str(folder), "--n-objects", "2",
                  "--scenes", "1", "--out", str(tmp_path / "out"), "--quiet", "--pictures", "0", "--no-memory"])

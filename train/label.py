@@ -265,12 +265,13 @@ def label(
     check_backend(backend)
     out_dir = os.fspath(out_dir)
     _check_config(out_dir, config)
-    if objects is None:
-        from envs.objects import load_object_set
+    from envs.objects import load_object_set, object_set_identity
 
+    if objects is None:  # a named set that lost a member raises ObjectSetError naming it
         objects = load_object_set(config.object_set, progress=progress)
     if not objects:
         raise ValueError(f"object set {config.object_set!r} is empty")
+    identity = object_set_identity(config.object_set, objects)
     stage1 = Stage1(None, config.stage1) if stage1 is None else stage1
     if stage1.config != config.stage1:
         raise ValueError("stage1.config differs from config.stage1")
@@ -292,7 +293,7 @@ def label(
                 bar.update(1)
         samples = {k: np.concatenate([p[k] for p in parts]) for k in dataset.SAMPLE_FIELDS}
         base = os.path.join(out_dir, f"scenes-{start:06d}-{end:06d}")
-        record = {"scenes": stats, "seconds": time.perf_counter() - began}
+        record = {"scenes": stats, "seconds": time.perf_counter() - began, "objects": identity}
         atomic_write_text(base + ".json", json.dumps(record))
         dataset.write_shard(base + dataset.SHARD_SUFFIX, samples)  # written last: marks the scenes done
         if bar is not None:
