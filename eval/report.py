@@ -261,10 +261,8 @@ def draw_scene(path: str | os.PathLike, observation, log: Mapping, spec: Gripper
     """A PNG of a scene: the first observation's cloud seen from above, coloured by object, with every
     executed grasp drawn as a gripper outline (green: success, red: failure, numbered by attempt), and
     the camera's label image beside it. Written atomically."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib import colormaps
+    from matplotlib.figure import Figure  # no pyplot: the caller's backend is left alone
 
     from sgjax.draw import gripper_outline
 
@@ -276,9 +274,10 @@ def draw_scene(path: str | os.PathLike, observation, log: Mapping, spec: Gripper
     table_pts = points[table][:: max(1, int(table.sum()) // 4000)]
     obj = labels >= 0
     obj_idx = np.flatnonzero(obj)[:: max(1, int(obj.sum()) // 20000)]
-    cmap = plt.get_cmap("tab20")
+    cmap = colormaps["tab20"]
 
-    fig, axes = plt.subplots(1, 2, figsize=(12, 5.6))
+    fig = Figure(figsize=(12, 5.6))
+    axes = fig.subplots(1, 2)
     ax = axes[0]
     ax.scatter(table_pts[:, 0], table_pts[:, 1], s=0.3, c="0.85")
     ax.scatter(points[obj_idx, 0], points[obj_idx, 1], s=0.6, c=[cmap(int(k) % 20) for k in labels[obj_idx]])
@@ -309,4 +308,3 @@ def draw_scene(path: str | os.PathLike, observation, log: Mapping, spec: Gripper
     fig.tight_layout()
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=110))
-    plt.close(fig)

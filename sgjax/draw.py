@@ -44,10 +44,10 @@ def draw_grasps(
     """Write a PNG: the object cloud points[N, 3] (and scene_points[S, 3] in grey) with the first
     `max_grasps` grasps (poses [M, 4, 4], widths [M]) drawn as outlines, coloured by `scores` [M]
     (default: by order), from an oblique and a top view. The file is written atomically."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    # The object API (Figure), not pyplot: no global backend switch, so a notebook's inline plots keep
+    # working after a picture is written.
+    from matplotlib import colormaps
+    from matplotlib.figure import Figure
 
     points = np.asarray(points, np.float64).reshape(-1, 3)
     poses = np.zeros((0, 4, 4)) if poses is None else np.asarray(poses, np.float64)[:max_grasps]
@@ -55,9 +55,9 @@ def draw_grasps(
     if len(poses) != len(widths):
         raise ValueError(f"got {len(poses)} poses but {len(widths)} widths")
     colour_of = np.linspace(1.0, 0.0, max(len(poses), 1)) if scores is None else np.asarray(scores)[: len(poses)]
-    cmap = plt.get_cmap("viridis")
+    cmap = colormaps["viridis"]
 
-    fig = plt.figure(figsize=(10, 5))
+    fig = Figure(figsize=(10, 5))
     for k, (elev, azim) in enumerate([(35, -60), (89, -90)]):
         ax = fig.add_subplot(1, 2, k + 1, projection="3d")
         if scene_points is not None and len(scene_points):
@@ -83,4 +83,3 @@ def draw_grasps(
         fig.suptitle(title)
     fig.tight_layout()
     atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=110))
-    plt.close(fig)
