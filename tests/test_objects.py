@@ -335,7 +335,19 @@ def test_rest_width_is_the_width_an_object_lies_at():
     assert meshprep.rest_width(trimesh.creation.box((0.05, 0.05, 0.05))) == pytest.approx(0.05, abs=1e-6)
 
 
-def test_ycb_filter_on_the_real_meshes():
+@pytest.fixture(scope="module")
+def _ycb_cache(tmp_path_factory):
+    """One cache for the tests that apply the size rule to the 78 YCB meshes: their rest widths (~1 s a
+    mesh) are computed once, then read back as every user's second run does."""
+    return str(tmp_path_factory.mktemp("ycb_cache"))
+
+
+@pytest.fixture
+def ycb_cache(_ycb_cache, monkeypatch):
+    monkeypatch.setenv("SGJAX_CACHE", _ycb_cache)  # after the autouse per-test cache: this one wins
+
+
+def test_ycb_filter_on_the_real_meshes(ycb_cache):
     every = objects.ycb_meshes()
     assert len(every) == 78
     graspable = objects.object_sources("ycb")
@@ -360,7 +372,7 @@ def test_ycb_filter_on_the_real_meshes():
     assert {s.name for s in small} < names
 
 
-def test_seen_unseen_split_is_deterministic_and_disjoint():
+def test_seen_unseen_split_is_deterministic_and_disjoint(ycb_cache):
     seen, unseen = objects.object_sources("ycb-seen"), objects.object_sources("ycb-unseen")
     assert seen == objects.object_sources("ycb-seen") and unseen == objects.object_sources("ycb-unseen")
     seen_names, unseen_names = {s.name for s in seen}, {s.name for s in unseen}
@@ -382,7 +394,7 @@ def test_seen_unseen_split_is_deterministic_and_disjoint():
 def test_procedural_objects_are_deterministic_graspable_solids():
     spec = GripperSpec()
     kinds = set()
-    for index in range(6):
+    for index in range(len(procedural.KINDS)):  # one object of each kind (kinds cycle with the index)
         name, mesh = procedural.procedural_object(index, seed=0)
         again = procedural.procedural_object(index, seed=0)[1]
         np.testing.assert_array_equal(mesh.vertices, again.vertices)
