@@ -21,10 +21,11 @@ import numpy as np
 from bench_ems import timed  # benchmarks/ is on sys.path when run as a script
 from flax import nnx
 
-from sgjax import ernet, synthetic
-from sgjax.ernet import ERNet, ERNetConfig
-from sgjax.gripper import GripperSpec
-from sgjax.superquadric import Superquadric
+from sgjax.stage2 import ernet
+from sgjax.geometry import synthetic
+from sgjax.stage2.ernet import ERNet, ERNetConfig
+from sgjax.geometry.gripper import GripperSpec
+from sgjax.geometry.superquadric import Superquadric
 from train import dataset, trainer
 
 SPEC = GripperSpec()

@@ -27,11 +27,11 @@ import jax
 import numpy as np
 from flax import nnx
 
-from sgjax import synthetic
-from sgjax.ernet import ERNet, ERNetConfig
+from sgjax.geometry import synthetic
+from sgjax.stage2.ernet import ERNet, ERNetConfig
 from sgjax.planner import Planner, PlannerConfig, load_default_model
-from sgjax.primitive_db import DBConfig, load_database
-from sgjax.superquadric import Superquadric
+from sgjax.stage1.database import DBConfig, load_database
+from sgjax.geometry.superquadric import Superquadric
 
 CAMERA = np.array([0.0, -0.35, 0.75])
 

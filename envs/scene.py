@@ -24,7 +24,7 @@ import numpy as np
 import trimesh
 
 from envs import gripper_model
-from sgjax.gripper import GripperSpec
+from sgjax.geometry.gripper import GripperSpec
 
 TABLE_GEOM = "table"
 TABLE_GROUP = 0

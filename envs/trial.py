@@ -40,7 +40,7 @@ from scipy.spatial.transform import Rotation
 
 from envs import gripper_model
 from envs import scene as scene_lib
-from sgjax.gripper import GripperSpec, check_width, enlarged_region_poses
+from sgjax.geometry.gripper import GripperSpec, check_width, enlarged_region_poses
 
 
 class Phase(enum.IntEnum):
@@ -620,7 +620,7 @@ def run_grasp_with_refinements(
 ) -> tuple[np.ndarray, TrialResult]:
     """Each grasp and its refinements (paper Sec. IV-C): labels [M, 1 + K] and the TrialResult [M * (1 + K)].
 
-    Column 0 is the initial grasp, column 1 + v `sgjax.gripper.refined_pose(pose, v)` (default: deepen
+    Column 0 is the initial grasp, column 1 + v `sgjax.geometry.gripper.refined_pose(pose, v)` (default: deepen
     0.008 m along approach, then rotate -15, 0, +15 deg about it), all at the same width. The result's
     trials are ordered grasp-major ([M, 1 + K] flattened).
     """

@@ -2,9 +2,9 @@
 
   pointnetgpd      GPD-style geometric candidates (eval/gpd.py: antipodal sampling, the deepest
                    collision-free placement, centring and width, re-checked; its antipodal ranking is
-                   not used) scored by the PointNetGPD evaluator (sgjax/pointnetgpd.py); the best-scored
+                   not used) scored by the PointNetGPD evaluator (sgjax/stage2/pointnetgpd.py); the best-scored
                    candidate is executed (PointNetGPD executes its best grasp; no threshold).
-  s1+pointnetgpd   "Ours (S1) + PointNetGPD": SuperGrasp's Stage 1 (sgjax/stage1.py, every visible
+  s1+pointnetgpd   "Ours (S1) + PointNetGPD": SuperGrasp's Stage 1 (sgjax/stage1/pipeline.py, every visible
                    object, the rest of the scene as obstacles, the observed table as support plane)
                    scored by PointNetGPD; the best is executed.
   gpd+s2           "PointNetGPD + Ours (S2)": the GPD-style candidates scored by E-RNet and chosen by
@@ -19,7 +19,7 @@ and the training command); `small_db` / `db` -- Stage 1's primitive database (s1
 
 Both networks score the scene as the labelling pipeline cropped it: the whole observation (objects
 and table) on a voxel grid of `scene_voxel` (3 mm), at most `max_scene_points` points
-(`sgjax.pointcloud.scene_cloud`, seeded). Fixed shapes, so no call after the first recompiles: the
+(`sgjax.geometry.pointcloud.scene_cloud`, seeded). Fixed shapes, so no call after the first recompiles: the
 candidates are padded (identity pose, NaN width: invalid for both networks) to `max_candidates`
 slots; more candidates than slots -> a seeded uniform subset of the GPD-style ones, or, for Stage 1,
 every object's best-matched ones first (round-robin over objects in match order, as the planner);
@@ -42,9 +42,10 @@ from flax import nnx
 from eval import gpd
 from eval.methods import Decision, near_grasps
 from eval.supergrasp import table_plane
-from sgjax import gripper, planner, pointcloud
-from sgjax.gripper import GripperSpec
-from sgjax.stage1 import Stage1Config
+from sgjax.geometry import gripper, pointcloud
+from sgjax import planner
+from sgjax.geometry.gripper import GripperSpec
+from sgjax.stage1.pipeline import Stage1Config
 
 
 @dataclasses.dataclass(frozen=True)
@@ -170,10 +171,10 @@ class Stage1Candidates:
     """SuperGrasp's Stage 1 over every visible object of an observation, padded to max_candidates."""
 
     def __init__(self, config: BaselineConfig, db=None, small_db: bool = False):
-        from sgjax.stage1 import Stage1
+        from sgjax.stage1.pipeline import Stage1
 
         if db is None and small_db:
-            from sgjax.primitive_db import DBConfig, load_database
+            from sgjax.stage1.database import DBConfig, load_database
 
             db = load_database(DBConfig.small(), progress=False)
         self.config = config
@@ -210,7 +211,7 @@ class Stage1Candidates:
 
 def load_pointnetgpd(model):
     """A PointNetGPD from None (the shipped default), a model, or a run directory."""
-    from sgjax import pointnetgpd
+    from sgjax.stage2 import pointnetgpd
 
     if model is None:
         return pointnetgpd.load_default_model()
@@ -223,7 +224,7 @@ def load_pointnetgpd(model):
 
 def load_ernet(model):
     """An ERNet from None (the planner's shipped default), a model, or a `sgjax train` run directory."""
-    from sgjax import ernet
+    from sgjax.stage2 import ernet
 
     if model is None:
         from sgjax.planner import load_default_model
@@ -303,7 +304,7 @@ class PointNetGPDMethod(_CandidateMethod):
         super().__init__(network, config, make)
 
     def _decide(self, cands: CandidateSet, scene, mask, seed: int):
-        from sgjax import pointnetgpd
+        from sgjax.stage2 import pointnetgpd
 
         out = pointnetgpd.score(self.graphdef, self.state, scene, cands.poses, cands.widths, mask,
                                 spec=self.config.spec, key=jax.random.key(seed))
@@ -327,7 +328,7 @@ class GPDStage2Method(_CandidateMethod):
         super().__init__(load_ernet(model), config, functools.partial(gpd_candidates, config=config))
 
     def _decide(self, cands: CandidateSet, scene, mask, seed: int):
-        from sgjax import ernet
+        from sgjax.stage2 import ernet
 
         cfg = self.config
         out = ernet.score(self.graphdef, self.state, scene, cands.poses, cands.widths, mask, spec=cfg.spec,

@@ -40,7 +40,7 @@ from envs import camera as camera_lib
 from envs import scene as scene_lib
 from envs import trial as trial_lib
 from eval.methods import Decision, Method
-from sgjax.gripper import GripperSpec
+from sgjax.geometry.gripper import GripperSpec
 
 LOG_VERSION = 1
 NO_OBJECT = "no_object"

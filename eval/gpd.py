@@ -6,7 +6,7 @@ PointNetGPD, ranked by a geometric antipodal score instead of a learned classifi
 Stage 1 (candidates):
   1. the observed object points (labels >= 0) are voxel-downsampled to at most `max_points` (fixed
      shape, padded with a mask); the table height is the median z of the table points (labels < 0);
-  2. unit normals by kNN PCA (`sgjax.coarse_filter.estimate_normals`), oriented towards the camera;
+  2. unit normals by kNN PCA (`sgjax.stage1.filters.estimate_normals`), oriented towards the camera;
   3. `num_samples` points are drawn (seeded); at each the closing axis x is the surface normal and the
      approach z is turned about x over `num_angles` angles, starting from the most downward direction
      perpendicular to x (approaches further than `max_approach_angle_deg` from straight down are
@@ -46,10 +46,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from eval.methods import Decision, near_grasps
-from sgjax.coarse_filter import estimate_normals
-from sgjax.gripper import GripperSpec, local_regions, lowest_height
-from sgjax.rotations import points_to_frame
-from sgjax.superquadric import pose_matrix
+from sgjax.stage1.filters import estimate_normals
+from sgjax.geometry.gripper import GripperSpec, local_regions, lowest_height
+from sgjax.geometry.rotations import points_to_frame
+from sgjax.geometry.superquadric import pose_matrix
 
 DOWN = np.array([0.0, 0.0, -1.0], np.float32)
 

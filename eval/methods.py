@@ -62,8 +62,8 @@ class Method(Protocol):
 
 def near_grasps(poses, avoid, spec) -> np.ndarray:
     """Which of poses [K, 4, 4] are the same grasp as one in avoid [F, 4, 4] (or None) -> bool[K];
-    host-side `sgjax.gripper.near_grasps` with its default tolerances."""
-    from sgjax import gripper
+    host-side `sgjax.geometry.gripper.near_grasps` with its default tolerances."""
+    from sgjax.geometry import gripper
 
     poses = np.asarray(poses, np.float64).reshape(-1, 4, 4)
     avoid = np.zeros((0, 4, 4)) if avoid is None else np.asarray(avoid, np.float64).reshape(-1, 4, 4)

@@ -38,7 +38,7 @@ class PlannerMethod:
         from sgjax.planner import Planner, PlannerConfig
 
         if db is None and small_db:
-            from sgjax.primitive_db import DBConfig, load_database
+            from sgjax.stage1.database import DBConfig, load_database
 
             db = load_database(DBConfig.small(), progress=False)
         if config is None:  # the Stage-2 scene cloud exactly as in labelling (train/label.py)

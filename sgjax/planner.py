@@ -5,17 +5,17 @@
     plan = Planner(model, db).plan_masked(scene_points, target_mask)     # one object by a bool mask
     plan = sgjax.planner.plan(scene_points, mask_or_labels_or_target)    # cached default planner
 
-Stage 1 (`sgjax.stage1`) turns each object's single-view cloud into grasp candidates (superquadric
+Stage 1 (`sgjax.stage1.pipeline`) turns each object's single-view cloud into grasp candidates (superquadric
 fit, similarity matching, grasp transfer, coarse filtering, the rest of the scene as obstacles).
 Stage 2 scores all candidates of all objects in ONE jit-compiled E-RNet call on the whole scene
-cloud (`sgjax.ernet.score`), and the decision policy of the paper (Sec. IV-E, "During inference")
+cloud (`sgjax.stage2.ernet.score`), and the decision policy of the paper (Sec. IV-E, "During inference")
 picks the grasp (`decide`):
 
   1. the candidate with the highest evaluation score is executed when that score exceeds
      `eval_threshold` (0.7);
   2. otherwise, when the highest refinement score over all candidates and variants exceeds
      `refine_threshold` (0.7), that candidate is refined by that variant (deepen 0.008 m, rotate
-     -15 / 0 / +15 deg about the approach axis, `sgjax.gripper.refined_pose`) and executed;
+     -15 / 0 / +15 deg about the approach axis, `sgjax.geometry.gripper.refined_pose`) and executed;
   3. otherwise there is no grasp, and `Plan.reason` says why.
 
 `use_refinement=False` skips step 2 (the paper's "without the refinement branch" ablation).
@@ -48,11 +48,12 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from sgjax import ernet, gripper, pointcloud
-from sgjax.ernet import ERNet
-from sgjax.gripper import GripperSpec
-from sgjax.primitive_db import PrimitiveDB
-from sgjax.stage1 import Candidates, Stage1, Stage1Config
+from sgjax.stage2 import ernet
+from sgjax.geometry import gripper, pointcloud
+from sgjax.stage2.ernet import ERNet
+from sgjax.geometry.gripper import GripperSpec
+from sgjax.stage1.database import PrimitiveDB
+from sgjax.stage1.pipeline import Candidates, Stage1, Stage1Config
 
 DEFAULT_MODEL_DIR = Path(__file__).resolve().parent / "models" / "ernet_default"
 
@@ -583,7 +584,7 @@ def stage2_subset(counts, budget: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _compile_count() -> int:
-    from sgjax.stage1 import _pipeline
+    from sgjax.stage1.pipeline import _pipeline
 
     return _pipeline._cache_size() + _stage2._cache_size()
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from sgjax.primitive_db import DBConfig, build_database
+from sgjax.stage1.database import DBConfig, build_database
 
 
 @pytest.fixture(scope="session")

@@ -28,11 +28,12 @@ from eval.declutter import (
 )
 from eval.gpd import GPDConfig
 from eval.methods import METHODS, MethodUnavailable, make_method, method_names
-from sgjax import ernet, gripper, pointcloud
-from sgjax import pointnetgpd as pg
+from sgjax.stage2 import ernet
+from sgjax.geometry import gripper, pointcloud
+from sgjax.stage2 import pointnetgpd as pg
 from sgjax.cli import main
-from sgjax.ernet import ERNet, ERNetConfig
-from sgjax.gripper import GripperSpec
+from sgjax.stage2.ernet import ERNet, ERNetConfig
+from sgjax.geometry.gripper import GripperSpec
 from train import dataset
 from train.label import LabelConfig
 from train import train_pointnetgpd as tp

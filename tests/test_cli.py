@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from sgjax import pointcloud
+from sgjax.geometry import pointcloud
 from sgjax.cli import main
 
 

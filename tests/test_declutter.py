@@ -23,7 +23,7 @@ from eval.methods import (
     make_method,
     near_grasps,
 )
-from sgjax.gripper import GripperSpec
+from sgjax.geometry.gripper import GripperSpec
 from sgjax.cli import main
 
 # Small camera images keep each observation at ~60 ms; 3-4 objects keep a scene at a few seconds.
@@ -336,7 +336,7 @@ def test_supergrasp_methods_run_a_tiny_scene(objects, small_db):
     import jax.numpy as jnp
     from flax import nnx
 
-    from sgjax.ernet import ERNet, ERNetConfig
+    from sgjax.stage2.ernet import ERNet, ERNetConfig
     from sgjax.planner import PlannerConfig
 
     # A tiny E-RNet rigged to rate every candidate 0.98, so the planner always executes a grasp.

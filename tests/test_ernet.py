@@ -1,4 +1,4 @@
-"""E-RNet: crop geometry against sgjax.gripper, input preparation, losses, shapes, scoring, bad input."""
+"""E-RNet: crop geometry against sgjax.geometry.gripper, input preparation, losses, shapes, scoring, bad input."""
 
 from __future__ import annotations
 
@@ -9,11 +9,12 @@ import optax
 import pytest
 from flax import nnx
 
-from sgjax import ernet, gripper
-from sgjax.ernet import ERNet, ERNetConfig
-from sgjax.gripper import GripperSpec
-from sgjax.rotations import random_rotation
-from sgjax.superquadric import pose_matrix
+from sgjax.stage2 import ernet
+from sgjax.geometry import gripper
+from sgjax.stage2.ernet import ERNet, ERNetConfig
+from sgjax.geometry.gripper import GripperSpec
+from sgjax.geometry.rotations import random_rotation
+from sgjax.geometry.superquadric import pose_matrix
 
 SPEC = GripperSpec()
 TINY = ERNetConfig.tiny()

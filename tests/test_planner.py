@@ -13,11 +13,11 @@ import pytest
 from flax import nnx
 
 from sgjax import planner as planner_mod
-from sgjax import synthetic
-from sgjax.ernet import ERNet, ERNetConfig
-from sgjax.gripper import GripperSpec, near_grasps, refined_pose
+from sgjax.geometry import synthetic
+from sgjax.stage2.ernet import ERNet, ERNetConfig
+from sgjax.geometry.gripper import GripperSpec, near_grasps, refined_pose
 from sgjax.planner import Planner, PlannerConfig, decide, select_grasp
-from sgjax.superquadric import Superquadric
+from sgjax.geometry.superquadric import Superquadric
 
 SPEC = GripperSpec()
 CAMERA = np.array([0.4, -0.1, 0.6])
@@ -178,7 +178,7 @@ def test_more_candidates_than_stage2_takes_keeps_each_objects_best():
 
 
 def test_deterministic_and_never_recompiles(planner, scene, first_plan):
-    from sgjax.stage1 import _pipeline
+    from sgjax.stage1.pipeline import _pipeline
 
     sizes = (_pipeline._cache_size(), planner_mod._stage2._cache_size())
     again = planner.plan(*scene, viewpoint=CAMERA, seed=0)
@@ -320,7 +320,7 @@ def save_run_dir(model: ERNet, run_dir) -> None:
     """A `sgjax train` run directory holding `model` (the trainer's checkpoint layout, no training)."""
     import orbax.checkpoint as ocp
 
-    from sgjax import ernet
+    from sgjax.stage2 import ernet
     from train import trainer
 
     manager = trainer._checkpoint_manager(str(run_dir))
@@ -333,7 +333,7 @@ def save_run_dir(model: ERNet, run_dir) -> None:
 
 def test_cli_plan(tmp_path, capsys, monkeypatch, small_db):
     from sgjax.cli import main
-    from sgjax.primitive_db import save_database
+    from sgjax.stage1.database import save_database
 
     run, db = tmp_path / "run", tmp_path / "db.npz"
     save_run_dir(rigged([0.0, 5.0], [0.0, 0.0, 0.0]), run)

@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation
 from envs import camera, gripper_model, trial
 from envs import scene as scene_lib
 from envs.objects import tiny_object_set
-from sgjax.gripper import GripperSpec, gripper_boxes
+from sgjax.geometry.gripper import GripperSpec, gripper_boxes
 
 IDENTITY = [1.0, 0.0, 0.0, 0.0]
 
@@ -169,7 +169,7 @@ def test_camera_config_errors():
 
 def test_gripper_geoms_match_the_sgjax_gripper_boxes(scene):
     """The simulated gripper frame is the sgjax gripper frame: placed by (pose, width), its MuJoCo
-    boxes coincide with sgjax.gripper.gripper_boxes."""
+    boxes coincide with sgjax.geometry.gripper.gripper_boxes."""
     spec = GripperSpec()
     pose = np.eye(4)
     pose[:3, :3] = Rotation.from_euler("xyz", [0.3, -1.1, 2.0]).as_matrix()

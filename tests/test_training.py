@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 from flax import nnx
 
-from sgjax import ernet
-from sgjax.ernet import ERNetConfig
+from sgjax.stage2 import ernet
+from sgjax.stage2.ernet import ERNetConfig
 from train import dataset, trainer
 
 # Random centroid sampling (FPS is covered in test_ernet.py); no noise, which only slows overfitting.

@@ -5,7 +5,7 @@ camera, pick one visible target at random, run Stage 1 on its single-view cloud 
 for the collision filter), execute `grasps_per_scene` randomly chosen candidates and their three
 refinement variants (deepen 0.008 m, rotate -15 / 0 / +15 deg) in parallel, and store one sample per
 executed grasp (`train.dataset.SAMPLE_FIELDS`): its enlarged region cropped from the Stage-2 scene
-cloud (`sgjax.pointcloud.scene_cloud`, the same cloud the planner scores on), the grasp, its label and
+cloud (`sgjax.geometry.pointcloud.scene_cloud`, the same cloud the planner scores on), the grasp, its label and
 the three refinement labels.
 
 Output directory:
@@ -32,11 +32,11 @@ import numpy as np
 from envs import camera as camera_lib
 from envs import scene as scene_lib
 from envs.trial import Outcome, TrialConfig, check_backend, run_grasp_with_refinements
-from sgjax import pointcloud
-from sgjax.ernet import crop_regions
-from sgjax.files import atomic_write_text
-from sgjax.gripper import GripperSpec
-from sgjax.stage1 import Stage1, Stage1Config
+from sgjax.geometry import pointcloud
+from sgjax.stage2.ernet import crop_regions
+from sgjax.utils.files import atomic_write_text
+from sgjax.geometry.gripper import GripperSpec
+from sgjax.stage1.pipeline import Stage1, Stage1Config
 from train import dataset
 
 CONFIG_FILE = "label_config.json"
@@ -50,7 +50,7 @@ class LabelConfig:
     n_objects: objects per scene (paper: 5). grasps_per_scene: candidates executed per scene, each with
     its 3 refinements (4 trials). scenes_per_shard: scenes per output file (the resume granularity).
     min_target_points: a target must show at least this many camera points (Stage 1's own minimum).
-    voxel, max_scene_points, workspace_margin: the Stage-2 scene cloud (`sgjax.pointcloud.scene_cloud`)
+    voxel, max_scene_points, workspace_margin: the Stage-2 scene cloud (`sgjax.geometry.pointcloud.scene_cloud`)
     cropped to the workspace plus this margin.
     """
 

@@ -37,7 +37,7 @@ import numpy as np
 import optax
 from flax import nnx
 
-from sgjax.ernet import (
+from sgjax.stage2.ernet import (
     CHECKPOINT_DIR,
     DEFAULT_SPEC,
     META_ITEM,
@@ -48,8 +48,8 @@ from sgjax.ernet import (
     ernet_loss,
     prepare_inputs,
 )
-from sgjax.files import atomic_write, atomic_write_text
-from sgjax.gripper import GripperSpec
+from sgjax.utils.files import atomic_write, atomic_write_text
+from sgjax.geometry.gripper import GripperSpec
 from train import dataset
 
 # ---------------------------------------------------------------------------------------------

@@ -7,7 +7,7 @@ good or bad. Here, as in the SuperGrasp paper's baseline and ablations (Table I)
 
   crop_closing_regions  world scene -> each candidate's gripper frame -> the points inside its closing
                         region (|x| <= w/2, |y| <= finger_width/2, 0 <= z <= finger_length;
-                        `sgjax.gripper.points_in_closing_region`), up to `n_points` (PointNetGPD: 500)
+                        `sgjax.geometry.gripper.points_in_closing_region`), up to `n_points` (PointNetGPD: 500)
                         in scene order (shuffle the scene first: `score` does), padded, with a mask.
   prepare_inputs        the same crop from stored enlarged-region samples (`train.dataset`, grasp
                         frame; the closing region is a subset of the enlarged region), with optional
@@ -43,8 +43,8 @@ import jax
 import jax.numpy as jnp
 from flax import nnx
 
-from sgjax import gripper
-from sgjax.ernet import (
+from sgjax.geometry import gripper
+from sgjax.stage2.ernet import (
     CHECKPOINT_DIR,
     DEFAULT_SPEC,
     Region,
@@ -58,17 +58,17 @@ from sgjax.ernet import (
     restore_run,
     scene_candidates,
 )
-from sgjax.gripper import GripperSpec
-from sgjax.pointnet2 import (
+from sgjax.geometry.gripper import GripperSpec
+from sgjax.stage2.pointnet2 import (
     SharedMLP,
     first_set_bits,
     interleave,
     pack_interleaved,
 )
-from sgjax.rotations import points_to_frame
+from sgjax.geometry.rotations import points_to_frame
 
 NETWORK = "pointnetgpd"  # meta["network"] of a PointNetGPD run directory
-DEFAULT_MODEL_DIR = Path(__file__).resolve().parent / "models" / "pointnetgpd_default"
+DEFAULT_MODEL_DIR = Path(__file__).resolve().parent.parent / "models" / "pointnetgpd_default"
 TRAIN_COMMAND = "sgjax train --network pointnetgpd --data SHARD_DIR --out RUN_DIR"
 
 
@@ -149,7 +149,7 @@ def crop_closing_regions(
     """Crop each candidate's closing region from a world-frame scene cloud, in its gripper frame.
 
     scene [N, 3] (world), poses [M, 4, 4] (gripper -> world), widths [M], scene_mask [N] (None: all)
-    -> `sgjax.ernet.Region` with P = n_points: points [M, P, 3] (padding rows 0), mask [M, P], count
+    -> `sgjax.stage2.ernet.Region` with P = n_points: points [M, P, 3] (padding rows 0), mask [M, P], count
     [M] (points in the region before truncation). Keeps the first n_points region points in scene
     order; non-finite scene points count as absent. One fused pass over M x N, as `ernet.crop_regions`.
     """

@@ -39,9 +39,9 @@ import numpy as np
 import optax
 from flax import nnx
 
-from sgjax import gripper
-from sgjax.gripper import GripperSpec
-from sgjax.pointnet2 import (
+from sgjax.geometry import gripper
+from sgjax.geometry.gripper import GripperSpec
+from sgjax.stage2.pointnet2 import (
     BackboneConfig,
     PointNet2,
     SetAbstractionConfig,
@@ -52,7 +52,7 @@ from sgjax.pointnet2 import (
     interleave,
     pack_interleaved,
 )
-from sgjax.rotations import points_to_frame
+from sgjax.geometry.rotations import points_to_frame
 
 # ---------------------------------------------------------------------------------------------
 # Configuration.
@@ -191,7 +191,7 @@ def _check_config(config: ERNetConfig, spec: GripperSpec) -> None:
 
 
 # ---------------------------------------------------------------------------------------------
-# Regions in the gripper frame (the geometry comes from sgjax.gripper; evaluated on x/y/z planes).
+# Regions in the gripper frame (the geometry comes from sgjax.geometry.gripper; evaluated on x/y/z planes).
 
 
 @functools.cache

@@ -30,7 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sgjax.rotations import points_from_frame, points_to_frame, rot_z
+from sgjax.geometry.rotations import points_from_frame, points_to_frame, rot_z
 
 
 @dataclasses.dataclass(frozen=True)
