@@ -31,7 +31,7 @@ from eval.methods import METHODS, MethodUnavailable, make_method, method_names
 from sgjax.stage2 import ernet
 from sgjax.geometry import gripper, pointcloud
 from sgjax.stage2 import pointnetgpd as pg
-from sgjax.cli import main
+from sgjax_cli import main
 from sgjax.stage2.ernet import ERNet, ERNetConfig
 from sgjax.geometry.gripper import GripperSpec
 from train import dataset

@@ -24,7 +24,7 @@ from eval.methods import (
     near_grasps,
 )
 from sgjax.geometry.gripper import GripperSpec
-from sgjax.cli import main
+from sgjax_cli import main
 
 # Small camera images keep each observation at ~60 ms; 3-4 objects keep a scene at a few seconds.
 CONFIG = DeclutterConfig(camera=CameraConfig(width=320, height=240), nthread=1)

@@ -12,7 +12,7 @@ import trimesh
 from envs import meshprep, objects, procedural
 from envs.meshprep import MeshPrepError, PrepConfig
 from envs.objects import MeshSource
-from sgjax.cli import main
+from sgjax_cli import main
 from sgjax.geometry.gripper import GripperSpec
 
 

@@ -332,7 +332,7 @@ def save_run_dir(model: ERNet, run_dir) -> None:
 
 
 def test_cli_plan(tmp_path, capsys, monkeypatch, small_db):
-    from sgjax.cli import main
+    from sgjax_cli import main
     from sgjax.stage1.database import save_database
 
     run, db = tmp_path / "run", tmp_path / "db.npz"

@@ -187,7 +187,7 @@ def test_interrupted_run_resumes_to_identical_result(trained, samples, tmp_path)
 
 
 def test_cli_train_synthetic_then_resume_and_bad_data(tmp_path, capsys):
-    from sgjax import cli
+    import sgjax_cli as cli
 
     data, out = tmp_path / "data", tmp_path / "run"
     args = ["train", "--data", str(data), "--out", str(out), "--model", "tiny", "--batch-size", "16", "--quiet"]

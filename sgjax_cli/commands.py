@@ -1,7 +1,7 @@
-"""The `sgjax` command: one entry point, one subcommand per job.
+"""The `sgjax` command's subcommands: one entry point (`main`), one subcommand per job.
 
-This module sits at the top of the house: it may import `envs`, `train` and `eval` lazily inside a
-subcommand, while the library modules below it never import upward.
+This package sits at the top of the house: it may import `envs`, `train` and `eval` (lazily, inside a
+subcommand, so that `sgjax --help` stays fast), while the layers below it never import upward.
 """
 
 from __future__ import annotations
@@ -527,6 +527,3 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     return args.func(args)
 
-
-if __name__ == "__main__":
-    sys.exit(main())
