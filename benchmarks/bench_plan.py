@@ -28,8 +28,8 @@ import numpy as np
 from flax import nnx
 
 from sgjax.geometry import synthetic
-from sgjax.stage2.ernet import ERNet, ERNetConfig
-from sgjax.planner import Planner, PlannerConfig, load_default_model
+from sgjax.stage2.ernet import ERNet, ERNetConfig, load_default_model
+from sgjax.planner import Planner, PlannerConfig
 from sgjax.stage1.database import DBConfig, load_database
 from sgjax.geometry.superquadric import Superquadric
 

@@ -18,8 +18,8 @@ and the training command); `small_db` / `db` -- Stage 1's primitive database (s1
 `config` -- a `BaselineConfig`.
 
 Both networks score the scene as the labelling pipeline cropped it: the whole observation (objects
-and table) on a voxel grid of `scene_voxel` (3 mm), at most `max_scene_points` points
-(`sgjax.geometry.pointcloud.scene_cloud`, seeded). Fixed shapes, so no call after the first recompiles: the
+and table) on a voxel grid of `scene_cloud.voxel` (3 mm), at most `scene_cloud.max_points` points
+(`sgjax.stage2.scene_cloud.SceneCloudConfig`, seeded). Fixed shapes, so no call after the first recompiles: the
 candidates are padded (identity pose, NaN width: invalid for both networks) to `max_candidates`
 slots; more candidates than slots -> a seeded uniform subset of the GPD-style ones, or, for Stage 1,
 every object's best-matched ones first (round-robin over objects in match order, as the planner);
@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import os
 import time
 
 import jax
@@ -46,6 +45,7 @@ from sgjax.geometry import gripper, pointcloud
 from sgjax import planner
 from sgjax.geometry.gripper import GripperSpec
 from sgjax.stage1.pipeline import Stage1Config
+from sgjax.stage2.scene_cloud import SceneCloudConfig
 
 
 @dataclasses.dataclass(frozen=True)
@@ -57,7 +57,7 @@ class BaselineConfig:
     max_candidates: candidate slots scored per plan (padded and masked).
     min_object_points, stage1_batch_sizes: as `sgjax.planner.PlannerConfig` (objects with fewer
         points are skipped; objects run through Stage 1 in chunks of these sizes).
-    max_scene_points, scene_voxel: the scene cloud the networks crop from (as in labelling).
+    scene_cloud: the scene cloud the networks crop from (as in labelling; no workspace crop).
     eval_threshold, refine_threshold, use_refinement: SuperGrasp's decision policy (gpd+s2).
     """
 
@@ -66,8 +66,7 @@ class BaselineConfig:
     max_candidates: int = 512
     min_object_points: int = 50
     stage1_batch_sizes: tuple[int, ...] = (4,)
-    max_scene_points: int = 32768
-    scene_voxel: float = 0.003
+    scene_cloud: SceneCloudConfig = SceneCloudConfig()
     eval_threshold: float = 0.7
     refine_threshold: float = 0.7
     use_refinement: bool = True
@@ -76,8 +75,8 @@ class BaselineConfig:
         object.__setattr__(self, "stage1_batch_sizes", tuple(sorted({int(b) for b in self.stage1_batch_sizes})))
         if self.gpd.spec != self.stage1.spec:
             raise ValueError("BaselineConfig: the GPD generator and Stage 1 must use the same GripperSpec")
-        if self.max_candidates < 1 or self.max_scene_points < 1 or not self.stage1_batch_sizes or self.stage1_batch_sizes[0] < 1:
-            raise ValueError("max_candidates, max_scene_points and stage1_batch_sizes must be >= 1")
+        if self.max_candidates < 1 or not self.stage1_batch_sizes or self.stage1_batch_sizes[0] < 1:
+            raise ValueError("max_candidates and stage1_batch_sizes must be >= 1")
         if self.min_object_points < pointcloud.MIN_POINTS:
             raise ValueError(f"min_object_points must be >= {pointcloud.MIN_POINTS}")
         planner.check_thresholds(self)
@@ -209,34 +208,6 @@ class Stage1Candidates:
 # Networks.
 
 
-def load_pointnetgpd(model):
-    """A PointNetGPD from None (the shipped default), a model, or a run directory."""
-    from sgjax.stage2 import pointnetgpd
-
-    if model is None:
-        return pointnetgpd.load_default_model()
-    if isinstance(model, pointnetgpd.PointNetGPD):
-        return model
-    if isinstance(model, (str, os.PathLike)):
-        return pointnetgpd.load_model(model)[0]
-    raise TypeError(f"model must be a PointNetGPD, a run directory or None, got {type(model).__name__}")
-
-
-def load_ernet(model):
-    """An ERNet from None (the planner's shipped default), a model, or a `sgjax train` run directory."""
-    from sgjax.stage2 import ernet
-
-    if model is None:
-        from sgjax.planner import load_default_model
-
-        return load_default_model()
-    if isinstance(model, ernet.ERNet):
-        return model
-    if isinstance(model, (str, os.PathLike)):
-        return ernet.load_model(model)[0]
-    raise TypeError(f"model must be an ERNet, a `sgjax train` run directory or None, got {type(model).__name__}")
-
-
 @functools.cache
 def _decide():
     from sgjax.planner import decide
@@ -278,7 +249,7 @@ class _CandidateMethod:
         if cands.n == 0:
             return Decision(None, 0.0, 0.0, cands.reason, {"stage1_s": mid - start, "stage2_s": 0.0, "total_s": mid - start}, info)
         cfg = self.config
-        scene, mask, _ = pointcloud.scene_cloud(points, cfg.max_scene_points, cfg.scene_voxel, None, None, seed)
+        scene, mask, _ = cfg.scene_cloud.make(points, None, seed)
         pose, width, score, reason, extra = self._decide(cands, scene, mask, seed)
         end = time.perf_counter()
         timing = {"stage1_s": mid - start, "stage2_s": end - mid, "total_s": end - start}
@@ -292,10 +263,12 @@ class PointNetGPDMethod(_CandidateMethod):
     """`pointnetgpd` (generator "gpd") and `s1+pointnetgpd` (generator "stage1"): the best PointNetGPD score."""
 
     def __init__(self, generator: str = "gpd", model=None, small_db: bool = False, db=None, config=None):
+        from sgjax.stage2 import pointnetgpd
+
         config = config or BaselineConfig()
         if generator not in ("gpd", "stage1"):
             raise ValueError(f"generator must be 'gpd' or 'stage1', got {generator!r}")
-        network = load_pointnetgpd(model)  # first: a missing checkpoint fails before the database loads
+        network = pointnetgpd.as_model(model)  # first: a missing checkpoint fails before the database loads
         if generator == "gpd":
             self.name, make = "pointnetgpd", functools.partial(gpd_candidates, config=config)
         else:
@@ -324,8 +297,10 @@ class GPDStage2Method(_CandidateMethod):
     generator_name = "gpd"
 
     def __init__(self, model=None, config=None):
+        from sgjax.stage2 import ernet
+
         config = config or BaselineConfig()
-        super().__init__(load_ernet(model), config, functools.partial(gpd_candidates, config=config))
+        super().__init__(ernet.as_model(model), config, functools.partial(gpd_candidates, config=config))
 
     def _decide(self, cands: CandidateSet, scene, mask, seed: int):
         from sgjax.stage2 import ernet

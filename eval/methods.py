@@ -151,10 +151,10 @@ def _contact_graspnet(config=None) -> Method:
     from eval.contact_graspnet import CGNConfig, ContactGraspNetMethod
 
     if config is None:  # the benchmark's workspace, cropped as for SuperGrasp's scene cloud
-        from train.label import LabelConfig
+        from envs.scene import stage2_scene_cloud
 
-        label = LabelConfig()
-        config = CGNConfig(voxel=label.voxel, scene_bounds=label.scene_bounds)
+        cloud = stage2_scene_cloud()
+        config = CGNConfig(voxel=cloud.voxel, scene_bounds=cloud.bounds)
     return ContactGraspNetMethod(config)
 
 

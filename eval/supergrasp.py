@@ -42,14 +42,9 @@ class PlannerMethod:
 
             db = load_database(DBConfig.small(), progress=False)
         if config is None:  # the Stage-2 scene cloud exactly as in labelling (train/label.py)
-            from train.label import LabelConfig
+            from envs.scene import stage2_scene_cloud
 
-            label = LabelConfig()
-            config = PlannerConfig(
-                max_scene_points=label.max_scene_points,
-                scene_voxel=label.voxel,
-                scene_bounds=label.scene_bounds,
-            )
+            config = PlannerConfig(scene_cloud=stage2_scene_cloud())
         self.config = dataclasses.replace(config, use_refinement=use_refinement)
         self.name = name
         self.planner = Planner(model=model, db=db, config=self.config)

@@ -33,7 +33,7 @@ _LAZY = {
     "Planner": "sgjax.planner",
     "PlannerConfig": "sgjax.planner",
     "plan": "sgjax.planner",
-    "load_default_model": "sgjax.planner",
+    "load_default_model": "sgjax.stage2.ernet",  # the shipped E-RNet
 }
 
 

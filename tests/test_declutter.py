@@ -338,6 +338,7 @@ def test_supergrasp_methods_run_a_tiny_scene(objects, small_db):
 
     from sgjax.stage2.ernet import ERNet, ERNetConfig
     from sgjax.planner import PlannerConfig
+    from sgjax.stage2.scene_cloud import SceneCloudConfig
 
     # A tiny E-RNet rigged to rate every candidate 0.98, so the planner always executes a grasp.
     tiny = ERNetConfig.tiny(backbone=dataclasses.replace(ERNetConfig.tiny().backbone, sampler="random"))
@@ -345,7 +346,7 @@ def test_supergrasp_methods_run_a_tiny_scene(objects, small_db):
     last = model.eval_head.layers[-1]
     last.kernel[...] = jnp.zeros_like(last.kernel[...])
     last.bias[...] = jnp.asarray([-2.0, 2.0], jnp.float32)
-    config = PlannerConfig(max_stage2_candidates=64, max_scene_points=4096, stage1_batch_sizes=(1,))
+    config = PlannerConfig(max_stage2_candidates=64, scene_cloud=SceneCloudConfig(max_points=4096), stage1_batch_sizes=(1,))
     for name in ("supergrasp", "supergrasp-norefine"):
         assert METHODS[name].unavailable_reason() is None
         method = make_method(name, model=model, db=small_db, config=config)

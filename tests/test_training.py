@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from flax import nnx
 
-from sgjax.stage2 import ernet
+from sgjax.stage2 import crops, ernet
 from sgjax.stage2.ernet import ERNetConfig
 from train import dataset, trainer
 
@@ -98,7 +98,7 @@ def test_synthetic_samples_are_labelled_by_geometry(samples):
     labels, refine = samples["label"], samples["refine_labels"]
     assert 0 < labels.mean() < 1 and (0 < refine.mean(0)).all() and (refine.mean(0) < 1).all()
     # Stored points lie in the enlarged region of the stored width.
-    inside = ernet.in_enlarged_region_local(samples["region"][:8], samples["width"][:8], CONFIG.spec)
+    inside = crops.in_enlarged_region_local(samples["region"][:8], samples["width"][:8], CONFIG.spec)
     assert np.asarray(inside)[samples["region_mask"][:8]].all()
     again = dataset.synthetic_samples(96, seed=0)
     np.testing.assert_array_equal(again["region"], samples["region"])

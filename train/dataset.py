@@ -17,7 +17,7 @@ writes shards with `write_shard` (atomic .npz, no pickles); training reads a dir
 
 A shard (compressed .npz) stores each field stacked over its samples ([S, ...]); `object_name` as a
 fixed-width unicode array. Regions with more than P points should be randomly subsampled by the writer
-(`sgjax.stage2.ernet.crop_regions` on a shuffled scene does this).
+(`sgjax.stage2.crops.crop_regions` on a shuffled scene does this).
 """
 
 from __future__ import annotations
@@ -313,6 +313,6 @@ def synthetic_samples(
 
 def _enlarged_mask(points: np.ndarray, width: np.ndarray, spec: GripperSpec) -> np.ndarray:
     """Grasp-frame points[n, N, 3] in the enlarged region of widths[n] (sgjax.geometry.gripper geometry)."""
-    from sgjax.stage2.ernet import in_enlarged_region_local
+    from sgjax.stage2.crops import in_enlarged_region_local
 
     return np.asarray(in_enlarged_region_local(points, width.astype(np.float32), spec))

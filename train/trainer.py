@@ -37,12 +37,9 @@ import numpy as np
 import optax
 from flax import nnx
 
+from sgjax.stage2.checkpoint import CHECKPOINT_DIR, META_ITEM, OPT_STATE_ITEM, PARAMS_ITEM
 from sgjax.stage2.ernet import (
-    CHECKPOINT_DIR,
     DEFAULT_SPEC,
-    META_ITEM,
-    OPT_STATE_ITEM,
-    PARAMS_ITEM,
     ERNet,
     ERNetConfig,
     ernet_loss,
