@@ -60,7 +60,7 @@ def declutter_scene(setting: str, index: int = 7):
     """-> (points [N, 3], labels [N], camera [3], table plane (n, d)): a benchmark scene's first view."""
     from envs import camera as camera_lib
     from eval.declutter import DeclutterConfig, get_setting, make_benchmark_scene
-    from eval.supergrasp import table_plane
+    from sgjax.geometry.pointcloud import table_plane
     from envs.objects import load_object_set
 
     cfg = DeclutterConfig()

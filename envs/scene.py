@@ -316,6 +316,15 @@ def build_spec(assets: Sequence, config: SceneConfig, gripper: GripperSpec) -> m
     return spec
 
 
+def build_sensorless_spec(assets: Sequence, config: SceneConfig, gripper: GripperSpec) -> mujoco.MjSpec:
+    """`build_spec` without the contact sensors: MJX cannot evaluate contact sensors with body matching
+    (its trials count contacts from the contact list instead, and its ray casts need no sensors)."""
+    spec = build_spec(assets, config, gripper)
+    for sensor in list(spec.sensors):
+        spec.delete(sensor)
+    return spec
+
+
 # ---------------------------------------------------------------------------------------------
 # Dropping, settling, removing.
 

@@ -1,6 +1,6 @@
 """The paper's PointNetGPD baseline and its two ablations (Table I) as benchmark methods.
 
-  pointnetgpd      GPD-style geometric candidates (eval/gpd.py: antipodal sampling, the deepest
+  pointnetgpd      GPD-style geometric candidates (eval/gpd_sampler.py: antipodal sampling, the deepest
                    collision-free placement, centring and width, re-checked; its antipodal ranking is
                    not used) scored by the PointNetGPD evaluator (sgjax/stage2/pointnetgpd.py); the best-scored
                    candidate is executed (PointNetGPD executes its best grasp; no threshold).
@@ -38,9 +38,8 @@ import jax
 import numpy as np
 from flax import nnx
 
-from eval import gpd
-from eval.methods import Decision, near_grasps
-from eval.supergrasp import table_plane
+from eval import gpd_sampler
+from eval.protocol import Decision, near_grasps
 from sgjax.geometry import gripper, pointcloud
 from sgjax import planner
 from sgjax.geometry.gripper import GripperSpec
@@ -61,7 +60,7 @@ class BaselineConfig:
     eval_threshold, refine_threshold, use_refinement: SuperGrasp's decision policy (gpd+s2).
     """
 
-    gpd: gpd.GPDConfig = dataclasses.field(default_factory=gpd.GPDConfig)
+    gpd: gpd_sampler.GPDConfig = dataclasses.field(default_factory=gpd_sampler.GPDConfig)
     stage1: Stage1Config = dataclasses.field(default_factory=Stage1Config)
     max_candidates: int = 512
     min_object_points: int = 50
@@ -132,17 +131,17 @@ def without_avoided(cands: CandidateSet, avoid, spec: GripperSpec) -> CandidateS
 
 
 def gpd_candidates(points, labels, viewpoint, seed: int, config: BaselineConfig) -> CandidateSet:
-    """The GPD-style generator (eval/gpd.py stages 1 and 2) -> its kept candidates, padded.
+    """The GPD-style generator (eval/gpd_sampler.py stages 1 and 2) -> its kept candidates, padded.
 
     A seeded uniform subset of them when there are more than `max_candidates`."""
     cfg, slots = config.gpd, config.max_candidates
-    cloud, mask, table_z, n = gpd.prepare_cloud(points, labels, cfg, seed)
+    cloud, mask, table_z, n = gpd_sampler.prepare_cloud(points, labels, cfg, seed)
     if n < cfg.min_points:
         return _empty(slots, f"only {n} object points seen", {"object_points": n})
     view = np.asarray(viewpoint, np.float32).reshape(3)
-    sampled = gpd.candidates(cloud, mask, view, np.float32(table_z), jax.random.key(seed), cfg)
+    sampled = gpd_sampler.candidates(cloud, mask, view, np.float32(table_z), jax.random.key(seed), cfg)
     m = cfg.num_samples * cfg.num_angles
-    out = gpd.evaluate(sampled["poses"].reshape(m, 4, 4), sampled["valid"].reshape(m), cloud, mask,
+    out = gpd_sampler.evaluate(sampled["poses"].reshape(m, 4, 4), sampled["valid"].reshape(m), cloud, mask,
                        sampled["normals"], np.float32(table_z), cfg)
     out = jax.tree_util.tree_map(np.asarray, out)
     kept = np.flatnonzero(out["valid"])
@@ -192,7 +191,7 @@ class Stage1Candidates:
             return _empty(slots, f"no object with at least {cfg.min_object_points} visible points", info)
         clouds = [points[labels == k] for k in objects]
         scenes = [points[labels != k] for k in objects]  # obstacles: the rest (Stage 1 takes an empty one)
-        found = self.stage1.chunked(clouds, scenes, viewpoint, seed, table_plane(points, labels), cfg.stage1_batch_sizes)
+        found = self.stage1.chunked(clouds, scenes, viewpoint, seed, pointcloud.table_plane(points, labels), cfg.stage1_batch_sizes)
         sizes = [len(c) for c in found]
         info["stage1_candidates"] = int(sum(sizes))
         if not sum(sizes):

@@ -59,7 +59,7 @@ from pathlib import Path
 
 import numpy as np
 
-from eval.methods import Decision, MethodUnavailable, near_grasps
+from eval.protocol import Decision, MethodUnavailable, near_grasps
 from sgjax.geometry import pointcloud
 from sgjax.geometry.gripper import GripperSpec
 

@@ -17,18 +17,10 @@ import dataclasses
 
 import numpy as np
 
-from eval.methods import Decision
+from eval.protocol import Decision
+from sgjax.geometry.pointcloud import table_plane
 
 TIMING_KEYS = ("stage1_s", "stage2_s", "total_s")
-
-
-def table_plane(points: np.ndarray, labels: np.ndarray) -> tuple[float, float, float, float] | None:
-    """The table as (0, 0, 1, -z) with z the median height of the table points (labels < 0), or None."""
-    table = np.asarray(labels) < 0
-    if not table.any():
-        return None
-    z = float(np.median(np.asarray(points)[table, 2]))
-    return (0.0, 0.0, 1.0, -z)
 
 
 class PlannerMethod:

@@ -15,14 +15,8 @@ from envs.objects import tiny_object_set
 from eval import declutter, metrics, report
 from eval.benchmark import run_benchmark, run_key
 from eval.declutter import DeclutterConfig, run_scene
-from eval.methods import (
-    METHODS,
-    Decision,
-    MethodUnavailable,
-    UnknownMethod,
-    make_method,
-    near_grasps,
-)
+from eval.methods import METHODS, MethodUnavailable, UnknownMethod, make_method
+from eval.protocol import Decision, near_grasps
 from sgjax.geometry.gripper import GripperSpec
 from sgjax_cli import main
 
@@ -277,7 +271,7 @@ def test_benchmark_resumes_and_writes_tables_and_pictures(tmp_path, objects):
 
 def test_resume_key_covers_the_methods_own_settings(objects):
     """A method's changed settings (its defaults included) must not resume logs written under the old ones."""
-    from eval.gpd import GPDConfig
+    from eval.gpd_sampler import GPDConfig
 
     key = lambda cfg: run_key("gpd", {}, 2, objects, CONFIG, cfg)
     assert key(GPDConfig()) == key(GPDConfig())

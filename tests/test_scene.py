@@ -8,7 +8,8 @@ import trimesh
 import pytest
 from scipy.spatial.transform import Rotation
 
-from envs import camera, gripper_model, trial
+from envs import camera, gripper_model
+from envs import rollout as trial_contract
 from envs import scene as scene_lib
 from envs.objects import tiny_object_set
 from sgjax.geometry.gripper import GripperSpec, gripper_boxes
@@ -175,8 +176,8 @@ def test_gripper_geoms_match_the_sgjax_gripper_boxes(scene):
     pose[:3, :3] = Rotation.from_euler("xyz", [0.3, -1.1, 2.0]).as_matrix()
     pose[:3, 3] = [0.1, -0.2, 0.4]
     width = 0.05
-    lay = trial.layout(scene)
-    state = trial.initial_states(scene, trial.make_schedule(pose[None], [width], spec), lay)[0]
+    lay = trial_contract.layout(scene)
+    state = trial_contract.initial_states(scene, trial_contract.make_schedule(pose[None], [width], spec), lay)[0]
     data = mujoco.MjData(scene.model)
     mujoco.mj_setState(scene.model, data, state, scene_lib.STATE_SPEC)
     data.qpos[lay.gripper_qpos : lay.gripper_qpos + 3] = pose[:3, 3]  # the grasp pose, not the pre-grasp
