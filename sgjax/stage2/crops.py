@@ -11,8 +11,8 @@ One crop routine (`_crop`) serves both; only the region test differs. A crop is 
 M candidates x N scene points with the membership bits packed 32 to a word (no [M, N, 3]
 intermediate); it keeps the first `n_points` region points in scene order, so shuffle the scene first
 for a uniform sample (`ernet.score` and `pointnetgpd.score` do). Non-finite scene points count as
-absent. The region tests take coordinate planes x, y, z (the geometry is `sgjax.geometry.gripper`'s)
-so that XLA fuses them into that pass.
+absent. The region tests take coordinate planes x, y, z so that XLA fuses them into that pass; their boxes
+and the point test are `sgjax.geometry.gripper`'s (`closing_box`, `in_box`), as for every region test.
 """
 
 from __future__ import annotations
@@ -46,16 +46,11 @@ def _region_frames(spec: GripperSpec) -> np.ndarray:
 def _in_closing_box(x, y, z, width, spec: GripperSpec, frame: np.ndarray | None = None):
     """Whether gripper-frame points (planes x, y, z [M, N]) lie in the closing region of the pose
     `frame` (relative to the gripper frame; None: the initial pose) for widths [M]."""
-    centre, half = gripper.closing_region(spec, width)  # [M, 3] each
     if frame is not None:
         r, t = frame[:3, :3], frame[:3, 3]
         d = [c - float(o) if o != 0 else c for c, o in zip((x, y, z), t)]
         x, y, z = (_dot_constant(r[:, i], d) for i in range(3))
-    return (
-        (jnp.abs(x - centre[:, 0:1]) <= half[:, 0:1])
-        & (jnp.abs(y - centre[:, 1:2]) <= half[:, 1:2])
-        & (jnp.abs(z - centre[:, 2:3]) <= half[:, 2:3])
-    )
+    return gripper.in_box(x, y, z, gripper.closing_box(spec, jnp.asarray(width, jnp.float32)[:, None]))
 
 
 def _dot_constant(coefficients: np.ndarray, planes: list) -> jax.Array:
@@ -117,11 +112,7 @@ def check_candidates(poses, widths) -> tuple[jax.Array, jax.Array]:
 
 def _in_closing_planes(x, y, z, width, spec: GripperSpec):
     """Gripper-frame coordinate planes (any equal shapes) inside the closing region of `width` (scalar)."""
-    centre, half = gripper.closing_region(spec, width)  # [3] each
-    return (
-        (jnp.abs(x - centre[0]) <= half[0]) & (jnp.abs(y - centre[1]) <= half[1]) & (jnp.abs(z - centre[2]) <= half[2])
-    )
-
+    return gripper.in_box(x, y, z, gripper.closing_box(spec, jnp.asarray(width, jnp.float32)))
 
 
 # ---------------------------------------------------------------------------------------------
