@@ -4,7 +4,7 @@
 
 Speed: fits per second for batch sizes 1, 64 and 1024 of 800-point single-view clouds, after
 compilation (reported separately). Accuracy: relative semi-axis error (frames matched, see
-`sgjax.superquadric.relative_scale_error`) on random superquadrics of graspable size seen by one
+`sgjax.geometry.superquadric.relative_scale_error`) on random superquadrics of graspable size seen by one
 camera, 800 points, 1 mm noise.
 """
 
@@ -16,8 +16,9 @@ import time
 import jax
 import numpy as np
 
-from sgjax import ems, pointcloud, synthetic
-from sgjax.superquadric import relative_scale_error
+from sgjax.stage1 import ems
+from sgjax.geometry import pointcloud, synthetic
+from sgjax.geometry.superquadric import relative_scale_error
 
 
 def make_set(n: int, seed: int = 0, outliers: float = 0.0):

@@ -21,10 +21,11 @@ import numpy as np
 from bench_ems import timed  # benchmarks/ is on sys.path when run as a script
 from flax import nnx
 
-from sgjax import ernet, synthetic
-from sgjax.ernet import ERNet, ERNetConfig
-from sgjax.gripper import GripperSpec
-from sgjax.superquadric import Superquadric
+from sgjax.stage2 import crops, ernet
+from sgjax.geometry import synthetic
+from sgjax.stage2.ernet import ERNet, ERNetConfig
+from sgjax.geometry.gripper import GripperSpec
+from sgjax.geometry.superquadric import Superquadric
 from train import dataset, trainer
 
 SPEC = GripperSpec()
@@ -77,7 +78,7 @@ def best_of(fn, repeats: int) -> tuple[float, float]:
 
 def stage_breakdown(model: ERNet, scene, poses, widths, repeats: int) -> dict[str, float]:
     config = model.config
-    crop = jax.jit(lambda s, p, w: ernet.crop_regions(s, p, w, SPEC, config.n_points))
+    crop = jax.jit(lambda s, p, w: crops.crop_regions(s, p, w, SPEC, config.n_points))
     prepare = jax.jit(lambda r, w: ernet.prepare_inputs(r.points, r.mask, w, SPEC, config))
     graphdef, state = nnx.split(model)
     network = jax.jit(lambda st, i: ernet.forward_chunked(nnx.merge(graphdef, st), i))  # as `score` runs it

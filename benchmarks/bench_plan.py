@@ -27,11 +27,11 @@ import jax
 import numpy as np
 from flax import nnx
 
-from sgjax import synthetic
-from sgjax.ernet import ERNet, ERNetConfig
-from sgjax.planner import Planner, PlannerConfig, load_default_model
-from sgjax.primitive_db import DBConfig, load_database
-from sgjax.superquadric import Superquadric
+from sgjax.geometry import synthetic
+from sgjax.stage2.ernet import ERNet, ERNetConfig, load_default_model
+from sgjax.planner import Planner, PlannerConfig
+from sgjax.stage1.database import DBConfig, load_database
+from sgjax.geometry.superquadric import Superquadric
 
 CAMERA = np.array([0.0, -0.35, 0.75])
 
@@ -60,7 +60,7 @@ def declutter_scene(setting: str, index: int = 7):
     """-> (points [N, 3], labels [N], camera [3], table plane (n, d)): a benchmark scene's first view."""
     from envs import camera as camera_lib
     from eval.declutter import DeclutterConfig, get_setting, make_benchmark_scene
-    from eval.supergrasp import table_plane
+    from sgjax.geometry.pointcloud import table_plane
     from envs.objects import load_object_set
 
     cfg = DeclutterConfig()

@@ -34,9 +34,9 @@ from scipy.spatial.transform import Rotation
 from envs import camera as camera_lib
 from envs import scene as scene_lib
 from envs.objects import load_object_set
-from sgjax.ems import EMSConfig
-from sgjax.primitive_db import DBConfig, load_database
-from sgjax.stage1 import Stage1, Stage1Config
+from sgjax.stage1.ems import EMSConfig
+from sgjax.stage1.database import DBConfig, load_database
+from sgjax.stage1.pipeline import Stage1, Stage1Config
 
 CONFIGS = {
     "before": EMSConfig(visibility_weight=0.0, visibility_fit=0.0),

@@ -16,10 +16,10 @@ import numpy as np
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from sgjax.matching import match
-from sgjax.primitive_db import DBConfig, load_database
-from sgjax.primitives import FAMILIES, Primitive, primitive_mesh
-from sgjax.stage1 import Stage1, Stage1Config
+from sgjax.stage1.matching import match
+from sgjax.stage1.database import DBConfig, load_database
+from sgjax.stage1.primitives import FAMILIES, Primitive, primitive_mesh
+from sgjax.stage1.pipeline import Stage1, Stage1Config
 
 CAMERA = np.array([0.45, -0.1, 0.55])
 

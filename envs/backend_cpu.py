@@ -13,7 +13,7 @@ import numpy as np
 from mujoco import batch as mj_batch
 
 from envs import scene as scene_lib
-from envs.trial import (
+from envs.rollout import (
     CONTROL_SPEC,
     FALLEN_BELOW,
     Judge,

@@ -18,6 +18,7 @@ import functools
 import mujoco
 import numpy as np
 
+from envs import raycast
 from envs import scene as scene_lib
 
 NO_RETURN = -3  # label of pixels without a return (also used for dropped-out noisy pixels)
@@ -143,26 +144,14 @@ def observe(
     seed drives the depth noise (ignored without noise). backend: "cpu" (mj_multiRay) or "mjx"
     (mjx.ray; the same hits). Returns an Observation.
     """
-    model = scene.model
     if data is None:
         data = scene.data()
     directions, cos_axis = _pixel_rays(config)
     n = len(directions)
-    geomid = np.empty(n, np.int32)
-    dist = np.empty(n, np.float64)
     groups = np.zeros(mujoco.mjNGROUP, np.uint8)
     groups[[scene_lib.TABLE_GROUP, scene_lib.VISUAL_GROUP]] = 1  # not the hulls, not the gripper
     origin = np.asarray(config.position, np.float64)
-    if backend == "cpu":
-        mujoco.mj_multiRay(
-            model, data, origin, directions.ravel(), groups, True, -1, geomid, dist, None, n, config.max_depth
-        )
-    elif backend == "mjx":
-        from envs.backend_mjx import cast_rays
-
-        geomid, dist = cast_rays(scene, data, origin, directions, groups, config.max_depth)
-    else:
-        raise ValueError(f"camera backend must be 'cpu' or 'mjx', got {backend!r}")
+    geomid, dist = raycast.cast_rays(scene, data, origin, directions, groups, config.max_depth, backend)
     hit = (geomid >= 0) & (dist >= 0)
     depth = np.where(hit, dist * cos_axis, 0.0)
     labels = np.where(hit, scene.geom_object()[np.maximum(geomid, 0)], NO_RETURN).astype(np.int32)

@@ -1,4 +1,4 @@
-"""The simulated parallel-jaw gripper, built into an `mujoco.MjSpec` from `sgjax.gripper.GripperSpec`.
+"""The simulated parallel-jaw gripper, built into an `mujoco.MjSpec` from `sgjax.geometry.gripper.GripperSpec`.
 
 The gripper body's frame IS the sgjax gripper frame (z approach, x closing, origin at the centre of the
 closing region's palm-side face), so a Stage-1 grasp (pose[4, 4], width) places it exactly: set the
@@ -11,7 +11,7 @@ Structure:
     the palm box  |x| <= palm_x/2, |y| <= palm_y/2, -palm_z <= z <= 0.
   * `finger_left` / `finger_right`: children of `gripper` on slide joints along -x / +x. Joint value q
     is the inner face's distance from the centre plane x = 0 (opening width = q_left + q_right), so the
-    finger boxes sit exactly where `sgjax.gripper.gripper_boxes` puts them.
+    finger boxes sit exactly where `sgjax.geometry.gripper.gripper_boxes` puts them.
   * Two force-limited position servos, one per finger (ctrl = target q in metres).
 
 All gripper bodies have gravity compensation: the weld then only carries the object, so the gripper
@@ -25,7 +25,7 @@ import dataclasses
 import mujoco
 import numpy as np
 
-from sgjax.gripper import GripperSpec
+from sgjax.geometry.gripper import GripperSpec
 
 TARGET_BODY = "gripper_target"
 GRIPPER_BODY = "gripper"

@@ -49,9 +49,9 @@ import trimesh
 
 from envs import meshprep, procedural
 from envs.meshprep import MESH_EXTENSIONS, MeshPrepError, PrepConfig
-from sgjax.cache import cache_dir
-from sgjax.files import atomic_write, atomic_write_text
-from sgjax.gripper import GripperSpec
+from sgjax.utils.cache import cache_dir
+from sgjax.utils.files import atomic_write, atomic_write_text
+from sgjax.geometry.gripper import GripperSpec
 
 MAX_HULL_VERTICES = PrepConfig.max_hull_vertices  # MJX collides meshes as hulls; keep them small
 ASSET_FILE = "asset.json"

@@ -16,7 +16,7 @@ import numpy as np
 import trimesh
 
 from envs.meshprep import rest_width
-from sgjax.superquadric import Superquadric, to_mesh
+from sgjax.geometry.superquadric import Superquadric, to_mesh
 
 KINDS = ("superquadric", "blend", "extrusion")
 PROCEDURAL_VERSION = 2  # bump when generation changes, so cached meshes are regenerated

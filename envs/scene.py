@@ -24,7 +24,8 @@ import numpy as np
 import trimesh
 
 from envs import gripper_model
-from sgjax.gripper import GripperSpec
+from sgjax.geometry.gripper import GripperSpec
+from sgjax.stage2.scene_cloud import SceneCloudConfig
 
 TABLE_GEOM = "table"
 TABLE_GROUP = 0
@@ -148,6 +149,17 @@ def workspace_bounds(config: SceneConfig = SceneConfig(), margin: float = 0.05) 
     above: the crop of the Stage-2 scene cloud in labelling and planning alike."""
     half = 0.5 * config.workspace_size + margin
     return (-half, -half, -0.01), (half, half, 1.0)
+
+
+WORKSPACE_MARGIN = 0.05  # the Stage-2 scene cloud keeps this much around the workspace
+
+
+def stage2_scene_cloud(
+    config: SceneConfig = SceneConfig(), margin: float = WORKSPACE_MARGIN, **settings
+) -> SceneCloudConfig:
+    """The Stage-2 scene cloud of labelling and the benchmark alike: cropped to the workspace grown by
+    `margin`; `settings` (max_points, voxel) override SceneCloudConfig's defaults."""
+    return SceneCloudConfig(bounds=workspace_bounds(config, margin), **settings)
 
 
 def geom_object_map(model: mujoco.MjModel, body_ids: np.ndarray) -> np.ndarray:
@@ -301,6 +313,15 @@ def build_spec(assets: Sequence, config: SceneConfig, gripper: GripperSpec) -> m
 
     gripper_model.add_gripper(spec, gripper, config.gripper_physics, home=config.gripper_home)
     gripper_model.add_contact_sensors(spec, [object_name(i) for i in range(len(assets))], TABLE_GEOM)
+    return spec
+
+
+def build_sensorless_spec(assets: Sequence, config: SceneConfig, gripper: GripperSpec) -> mujoco.MjSpec:
+    """`build_spec` without the contact sensors: MJX cannot evaluate contact sensors with body matching
+    (its trials count contacts from the contact list instead, and its ray casts need no sensors)."""
+    spec = build_spec(assets, config, gripper)
+    for sensor in list(spec.sensors):
+        spec.delete(sensor)
     return spec
 
 

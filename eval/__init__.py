@@ -1,1 +1,1 @@
-"""Decluttering benchmark, baselines, ablations and reports. Imports `sgjax`, `envs` and `train`."""
+"""Decluttering benchmark, baselines, ablations and reports. Imports `sgjax` and `envs` (never `train`)."""

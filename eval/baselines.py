@@ -1,10 +1,10 @@
 """The paper's PointNetGPD baseline and its two ablations (Table I) as benchmark methods.
 
-  pointnetgpd      GPD-style geometric candidates (eval/gpd.py: antipodal sampling, the deepest
+  pointnetgpd      GPD-style geometric candidates (eval/gpd_sampler.py: antipodal sampling, the deepest
                    collision-free placement, centring and width, re-checked; its antipodal ranking is
-                   not used) scored by the PointNetGPD evaluator (sgjax/pointnetgpd.py); the best-scored
+                   not used) scored by the PointNetGPD evaluator (sgjax/stage2/pointnetgpd.py); the best-scored
                    candidate is executed (PointNetGPD executes its best grasp; no threshold).
-  s1+pointnetgpd   "Ours (S1) + PointNetGPD": SuperGrasp's Stage 1 (sgjax/stage1.py, every visible
+  s1+pointnetgpd   "Ours (S1) + PointNetGPD": SuperGrasp's Stage 1 (sgjax/stage1/pipeline.py, every visible
                    object, the rest of the scene as obstacles, the observed table as support plane)
                    scored by PointNetGPD; the best is executed.
   gpd+s2           "PointNetGPD + Ours (S2)": the GPD-style candidates scored by E-RNet and chosen by
@@ -18,8 +18,8 @@ and the training command); `small_db` / `db` -- Stage 1's primitive database (s1
 `config` -- a `BaselineConfig`.
 
 Both networks score the scene as the labelling pipeline cropped it: the whole observation (objects
-and table) on a voxel grid of `scene_voxel` (3 mm), at most `max_scene_points` points
-(`sgjax.pointcloud.scene_cloud`, seeded). Fixed shapes, so no call after the first recompiles: the
+and table) on a voxel grid of `scene_cloud.voxel` (3 mm), at most `scene_cloud.max_points` points
+(`sgjax.stage2.scene_cloud.SceneCloudConfig`, seeded). Fixed shapes, so no call after the first recompiles: the
 candidates are padded (identity pose, NaN width: invalid for both networks) to `max_candidates`
 slots; more candidates than slots -> a seeded uniform subset of the GPD-style ones, or, for Stage 1,
 every object's best-matched ones first (round-robin over objects in match order, as the planner);
@@ -32,19 +32,19 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import os
 import time
 
 import jax
 import numpy as np
 from flax import nnx
 
-from eval import gpd
-from eval.methods import Decision, near_grasps
-from eval.supergrasp import table_plane
-from sgjax import gripper, planner, pointcloud
-from sgjax.gripper import GripperSpec
-from sgjax.stage1 import Stage1Config
+from eval import gpd_sampler
+from eval.protocol import Decision, near_grasps
+from sgjax.geometry import gripper, pointcloud
+from sgjax import planner
+from sgjax.geometry.gripper import GripperSpec
+from sgjax.stage1.pipeline import Stage1Config
+from sgjax.stage2.scene_cloud import SceneCloudConfig
 
 
 @dataclasses.dataclass(frozen=True)
@@ -56,17 +56,16 @@ class BaselineConfig:
     max_candidates: candidate slots scored per plan (padded and masked).
     min_object_points, stage1_batch_sizes: as `sgjax.planner.PlannerConfig` (objects with fewer
         points are skipped; objects run through Stage 1 in chunks of these sizes).
-    max_scene_points, scene_voxel: the scene cloud the networks crop from (as in labelling).
+    scene_cloud: the scene cloud the networks crop from (as in labelling; no workspace crop).
     eval_threshold, refine_threshold, use_refinement: SuperGrasp's decision policy (gpd+s2).
     """
 
-    gpd: gpd.GPDConfig = dataclasses.field(default_factory=gpd.GPDConfig)
+    gpd: gpd_sampler.GPDConfig = dataclasses.field(default_factory=gpd_sampler.GPDConfig)
     stage1: Stage1Config = dataclasses.field(default_factory=Stage1Config)
     max_candidates: int = 512
     min_object_points: int = 50
     stage1_batch_sizes: tuple[int, ...] = (4,)
-    max_scene_points: int = 32768
-    scene_voxel: float = 0.003
+    scene_cloud: SceneCloudConfig = SceneCloudConfig()
     eval_threshold: float = 0.7
     refine_threshold: float = 0.7
     use_refinement: bool = True
@@ -75,8 +74,8 @@ class BaselineConfig:
         object.__setattr__(self, "stage1_batch_sizes", tuple(sorted({int(b) for b in self.stage1_batch_sizes})))
         if self.gpd.spec != self.stage1.spec:
             raise ValueError("BaselineConfig: the GPD generator and Stage 1 must use the same GripperSpec")
-        if self.max_candidates < 1 or self.max_scene_points < 1 or not self.stage1_batch_sizes or self.stage1_batch_sizes[0] < 1:
-            raise ValueError("max_candidates, max_scene_points and stage1_batch_sizes must be >= 1")
+        if self.max_candidates < 1 or not self.stage1_batch_sizes or self.stage1_batch_sizes[0] < 1:
+            raise ValueError("max_candidates and stage1_batch_sizes must be >= 1")
         if self.min_object_points < pointcloud.MIN_POINTS:
             raise ValueError(f"min_object_points must be >= {pointcloud.MIN_POINTS}")
         planner.check_thresholds(self)
@@ -132,17 +131,17 @@ def without_avoided(cands: CandidateSet, avoid, spec: GripperSpec) -> CandidateS
 
 
 def gpd_candidates(points, labels, viewpoint, seed: int, config: BaselineConfig) -> CandidateSet:
-    """The GPD-style generator (eval/gpd.py stages 1 and 2) -> its kept candidates, padded.
+    """The GPD-style generator (eval/gpd_sampler.py stages 1 and 2) -> its kept candidates, padded.
 
     A seeded uniform subset of them when there are more than `max_candidates`."""
     cfg, slots = config.gpd, config.max_candidates
-    cloud, mask, table_z, n = gpd.prepare_cloud(points, labels, cfg, seed)
+    cloud, mask, table_z, n = gpd_sampler.prepare_cloud(points, labels, cfg, seed)
     if n < cfg.min_points:
         return _empty(slots, f"only {n} object points seen", {"object_points": n})
     view = np.asarray(viewpoint, np.float32).reshape(3)
-    sampled = gpd.candidates(cloud, mask, view, np.float32(table_z), jax.random.key(seed), cfg)
+    sampled = gpd_sampler.candidates(cloud, mask, view, np.float32(table_z), jax.random.key(seed), cfg)
     m = cfg.num_samples * cfg.num_angles
-    out = gpd.evaluate(sampled["poses"].reshape(m, 4, 4), sampled["valid"].reshape(m), cloud, mask,
+    out = gpd_sampler.evaluate(sampled["poses"].reshape(m, 4, 4), sampled["valid"].reshape(m), cloud, mask,
                        sampled["normals"], np.float32(table_z), cfg)
     out = jax.tree_util.tree_map(np.asarray, out)
     kept = np.flatnonzero(out["valid"])
@@ -170,10 +169,10 @@ class Stage1Candidates:
     """SuperGrasp's Stage 1 over every visible object of an observation, padded to max_candidates."""
 
     def __init__(self, config: BaselineConfig, db=None, small_db: bool = False):
-        from sgjax.stage1 import Stage1
+        from sgjax.stage1.pipeline import Stage1
 
         if db is None and small_db:
-            from sgjax.primitive_db import DBConfig, load_database
+            from sgjax.stage1.database import DBConfig, load_database
 
             db = load_database(DBConfig.small(), progress=False)
         self.config = config
@@ -192,7 +191,7 @@ class Stage1Candidates:
             return _empty(slots, f"no object with at least {cfg.min_object_points} visible points", info)
         clouds = [points[labels == k] for k in objects]
         scenes = [points[labels != k] for k in objects]  # obstacles: the rest (Stage 1 takes an empty one)
-        found = self.stage1.chunked(clouds, scenes, viewpoint, seed, table_plane(points, labels), cfg.stage1_batch_sizes)
+        found = self.stage1.chunked(clouds, scenes, viewpoint, seed, pointcloud.table_plane(points, labels), cfg.stage1_batch_sizes)
         sizes = [len(c) for c in found]
         info["stage1_candidates"] = int(sum(sizes))
         if not sum(sizes):
@@ -206,34 +205,6 @@ class Stage1Candidates:
 
 # ---------------------------------------------------------------------------------------------
 # Networks.
-
-
-def load_pointnetgpd(model):
-    """A PointNetGPD from None (the shipped default), a model, or a run directory."""
-    from sgjax import pointnetgpd
-
-    if model is None:
-        return pointnetgpd.load_default_model()
-    if isinstance(model, pointnetgpd.PointNetGPD):
-        return model
-    if isinstance(model, (str, os.PathLike)):
-        return pointnetgpd.load_model(model)[0]
-    raise TypeError(f"model must be a PointNetGPD, a run directory or None, got {type(model).__name__}")
-
-
-def load_ernet(model):
-    """An ERNet from None (the planner's shipped default), a model, or a `sgjax train` run directory."""
-    from sgjax import ernet
-
-    if model is None:
-        from sgjax.planner import load_default_model
-
-        return load_default_model()
-    if isinstance(model, ernet.ERNet):
-        return model
-    if isinstance(model, (str, os.PathLike)):
-        return ernet.load_model(model)[0]
-    raise TypeError(f"model must be an ERNet, a `sgjax train` run directory or None, got {type(model).__name__}")
 
 
 @functools.cache
@@ -277,7 +248,7 @@ class _CandidateMethod:
         if cands.n == 0:
             return Decision(None, 0.0, 0.0, cands.reason, {"stage1_s": mid - start, "stage2_s": 0.0, "total_s": mid - start}, info)
         cfg = self.config
-        scene, mask, _ = pointcloud.scene_cloud(points, cfg.max_scene_points, cfg.scene_voxel, None, None, seed)
+        scene, mask, _ = cfg.scene_cloud.make(points, None, seed)
         pose, width, score, reason, extra = self._decide(cands, scene, mask, seed)
         end = time.perf_counter()
         timing = {"stage1_s": mid - start, "stage2_s": end - mid, "total_s": end - start}
@@ -291,10 +262,12 @@ class PointNetGPDMethod(_CandidateMethod):
     """`pointnetgpd` (generator "gpd") and `s1+pointnetgpd` (generator "stage1"): the best PointNetGPD score."""
 
     def __init__(self, generator: str = "gpd", model=None, small_db: bool = False, db=None, config=None):
+        from sgjax.stage2 import pointnetgpd
+
         config = config or BaselineConfig()
         if generator not in ("gpd", "stage1"):
             raise ValueError(f"generator must be 'gpd' or 'stage1', got {generator!r}")
-        network = load_pointnetgpd(model)  # first: a missing checkpoint fails before the database loads
+        network = pointnetgpd.as_model(model)  # first: a missing checkpoint fails before the database loads
         if generator == "gpd":
             self.name, make = "pointnetgpd", functools.partial(gpd_candidates, config=config)
         else:
@@ -303,7 +276,7 @@ class PointNetGPDMethod(_CandidateMethod):
         super().__init__(network, config, make)
 
     def _decide(self, cands: CandidateSet, scene, mask, seed: int):
-        from sgjax import pointnetgpd
+        from sgjax.stage2 import pointnetgpd
 
         out = pointnetgpd.score(self.graphdef, self.state, scene, cands.poses, cands.widths, mask,
                                 spec=self.config.spec, key=jax.random.key(seed))
@@ -323,11 +296,13 @@ class GPDStage2Method(_CandidateMethod):
     generator_name = "gpd"
 
     def __init__(self, model=None, config=None):
+        from sgjax.stage2 import ernet
+
         config = config or BaselineConfig()
-        super().__init__(load_ernet(model), config, functools.partial(gpd_candidates, config=config))
+        super().__init__(ernet.as_model(model), config, functools.partial(gpd_candidates, config=config))
 
     def _decide(self, cands: CandidateSet, scene, mask, seed: int):
-        from sgjax import ernet
+        from sgjax.stage2 import ernet
 
         cfg = self.config
         out = ernet.score(self.graphdef, self.state, scene, cands.poses, cands.widths, mask, spec=cfg.spec,

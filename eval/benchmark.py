@@ -20,7 +20,8 @@ from pathlib import Path
 
 from eval import declutter, metrics, report
 from eval.declutter import DeclutterConfig
-from eval.methods import Method, check_method, make_method
+from eval.methods import check_method, make_method
+from eval.protocol import Method
 
 
 @dataclasses.dataclass

@@ -31,7 +31,7 @@ The runner keeps its reply channel clean: cgn_pytorch's own prints go to its std
 Grasp frames: CGN returns Panda hand poses: columns x = the baseline (closing) direction, y = z cross
 x, z = the approach direction; the origin is the hand frame, `gripper_depth` = 0.1034 m behind the
 contact baseline, i.e. behind the fingertips (`inference()` uses that depth whatever its config
-says). The sgjax gripper (`sgjax/gripper.py`) has the same axes (x closing, z approach, y = z x x)
+says). The sgjax gripper (`sgjax/geometry/gripper.py`) has the same axes (x closing, z approach, y = z x x)
 and its origin at the palm-side face of the closing region, its fingertips `finger_length` ahead.
 So the rotation is kept and the origin moved along the approach axis until the fingertips coincide:
 
@@ -59,9 +59,9 @@ from pathlib import Path
 
 import numpy as np
 
-from eval.methods import Decision, MethodUnavailable, near_grasps
-from sgjax import pointcloud
-from sgjax.gripper import GripperSpec
+from eval.protocol import Decision, MethodUnavailable, near_grasps
+from sgjax.geometry import pointcloud
+from sgjax.geometry.gripper import GripperSpec
 
 ENV_VAR = "SGJAX_CGN_PYTHON"
 RUNNER = Path(__file__).resolve().with_name("cgn_runner.py")
@@ -75,7 +75,7 @@ SETUP = (
 @dataclasses.dataclass(frozen=True)
 class CGNConfig:
     """threshold: CGN's confidence threshold; max_points, voxel, scene_bounds: the cloud sent, made like
-    SuperGrasp's Stage-2 scene cloud (`sgjax.pointcloud.scene_cloud`: optional (lo [3], hi [3]) crop,
+    SuperGrasp's Stage-2 scene cloud (`sgjax.geometry.pointcloud.scene_cloud`: optional (lo [3], hi [3]) crop,
     one point per voxel, then a seeded subsample); the method's factory crops to the benchmark's
     workspace as SuperGrasp does; gripper_depth: CGN's hand-origin-to-fingertip distance (Panda, m);
     timeout_s: per request (the first includes loading the model); spec: the sgjax gripper the poses

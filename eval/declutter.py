@@ -20,7 +20,7 @@ Choices, documented:
     observation with a new seed. A target dropped out of the workspace counts as not grasped.
   * Memory (`DeclutterConfig.remember_failures`, on by default): every plan call gets the poses of the
     grasps that failed so far in this scene as `avoid`, and the method leaves out the same grasps
-    (`eval.methods.near_grasps`). Without it a deterministic planner repeats a grasp that collides on
+    (`eval.protocol.near_grasps`). Without it a deterministic planner repeats a grasp that collides on
     its approach until the attempt cap, as long as the scene does not change. Every method gets the
     same memory; a method whose `plan` takes no `avoid` runs without it (logged as "memory": false).
   * Scene seeds are `scene_seed(seed, index)`: the same (setting, seed, index) gives the identical
@@ -39,8 +39,8 @@ import numpy as np
 from envs import camera as camera_lib
 from envs import scene as scene_lib
 from envs import trial as trial_lib
-from eval.methods import Decision, Method
-from sgjax.gripper import GripperSpec
+from eval.protocol import Decision, Method
+from sgjax.geometry.gripper import GripperSpec
 
 LOG_VERSION = 1
 NO_OBJECT = "no_object"

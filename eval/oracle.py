@@ -19,8 +19,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from envs import simple_grasps
-from eval.gpd import swept_hits, voxel_downsample
-from eval.methods import Decision, near_grasps
+from eval.gpd_sampler import swept_hits, voxel_downsample
+from eval.protocol import Decision, near_grasps
 
 
 def top_down_candidates(scene, index: int, depth: float = 0.03, table_clearance: float = 0.01,

@@ -27,8 +27,8 @@ from pathlib import Path
 import numpy as np
 
 from eval import metrics
-from sgjax.files import atomic_write, atomic_write_text
-from sgjax.gripper import GripperSpec
+from sgjax.utils.files import atomic_write, atomic_write_text
+from sgjax.geometry.gripper import GripperSpec
 
 LOGS = "logs"
 PICTURES = "pictures"

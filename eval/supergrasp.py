@@ -17,18 +17,10 @@ import dataclasses
 
 import numpy as np
 
-from eval.methods import Decision
+from eval.protocol import Decision
+from sgjax.geometry.pointcloud import table_plane
 
 TIMING_KEYS = ("stage1_s", "stage2_s", "total_s")
-
-
-def table_plane(points: np.ndarray, labels: np.ndarray) -> tuple[float, float, float, float] | None:
-    """The table as (0, 0, 1, -z) with z the median height of the table points (labels < 0), or None."""
-    table = np.asarray(labels) < 0
-    if not table.any():
-        return None
-    z = float(np.median(np.asarray(points)[table, 2]))
-    return (0.0, 0.0, 1.0, -z)
 
 
 class PlannerMethod:
@@ -38,18 +30,13 @@ class PlannerMethod:
         from sgjax.planner import Planner, PlannerConfig
 
         if db is None and small_db:
-            from sgjax.primitive_db import DBConfig, load_database
+            from sgjax.stage1.database import DBConfig, load_database
 
             db = load_database(DBConfig.small(), progress=False)
         if config is None:  # the Stage-2 scene cloud exactly as in labelling (train/label.py)
-            from train.label import LabelConfig
+            from envs.scene import stage2_scene_cloud
 
-            label = LabelConfig()
-            config = PlannerConfig(
-                max_scene_points=label.max_scene_points,
-                scene_voxel=label.voxel,
-                scene_bounds=label.scene_bounds,
-            )
+            config = PlannerConfig(scene_cloud=stage2_scene_cloud())
         self.config = dataclasses.replace(config, use_refinement=use_refinement)
         self.name = name
         self.planner = Planner(model=model, db=db, config=self.config)

@@ -6,8 +6,8 @@ import os
 
 import numpy as np
 
-from sgjax.files import atomic_write
-from sgjax.gripper import GripperSpec
+from sgjax.utils.files import atomic_write
+from sgjax.geometry.gripper import GripperSpec
 
 
 def gripper_outline(pose: np.ndarray, width: float, spec: GripperSpec = GripperSpec()) -> np.ndarray:

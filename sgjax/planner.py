@@ -5,23 +5,23 @@
     plan = Planner(model, db).plan_masked(scene_points, target_mask)     # one object by a bool mask
     plan = sgjax.planner.plan(scene_points, mask_or_labels_or_target)    # cached default planner
 
-Stage 1 (`sgjax.stage1`) turns each object's single-view cloud into grasp candidates (superquadric
+Stage 1 (`sgjax.stage1.pipeline`) turns each object's single-view cloud into grasp candidates (superquadric
 fit, similarity matching, grasp transfer, coarse filtering, the rest of the scene as obstacles).
 Stage 2 scores all candidates of all objects in ONE jit-compiled E-RNet call on the whole scene
-cloud (`sgjax.ernet.score`), and the decision policy of the paper (Sec. IV-E, "During inference")
+cloud (`sgjax.stage2.ernet.score`), and the decision policy of the paper (Sec. IV-E, "During inference")
 picks the grasp (`decide`):
 
   1. the candidate with the highest evaluation score is executed when that score exceeds
      `eval_threshold` (0.7);
   2. otherwise, when the highest refinement score over all candidates and variants exceeds
      `refine_threshold` (0.7), that candidate is refined by that variant (deepen 0.008 m, rotate
-     -15 / 0 / +15 deg about the approach axis, `sgjax.gripper.refined_pose`) and executed;
+     -15 / 0 / +15 deg about the approach axis, `sgjax.geometry.gripper.refined_pose`) and executed;
   3. otherwise there is no grasp, and `Plan.reason` says why.
 
 `use_refinement=False` skips step 2 (the paper's "without the refinement branch" ablation).
 
 Fixed shapes, so repeated plans never recompile: Stage 2 always scores `max_stage2_candidates`
-slots (padded and masked) on `max_scene_points` scene points (voxel grid + seeded uniform subsample,
+slots (padded and masked) on `scene_cloud.max_points` scene points (voxel grid + seeded uniform subsample,
 padded and masked, made as the labelling pipeline makes it: `pointcloud.scene_cloud`). Stage 1 runs
 objects in batches of the sizes in `stage1_batch_sizes` (default 4: 10 objects = 4 + 4 + 2 padded), so at most that many
 Stage-1 shapes are ever compiled. When Stage 1 yields more candidates than Stage 2 takes, every
@@ -38,9 +38,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import os
 import time
-from pathlib import Path
 from typing import Any
 
 import jax
@@ -48,13 +46,13 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from sgjax import ernet, gripper, pointcloud
-from sgjax.ernet import ERNet
-from sgjax.gripper import GripperSpec
-from sgjax.primitive_db import PrimitiveDB
-from sgjax.stage1 import Candidates, Stage1, Stage1Config
+from sgjax.stage2 import ernet
+from sgjax.geometry import gripper, pointcloud
+from sgjax.geometry.gripper import GripperSpec
+from sgjax.stage1.database import PrimitiveDB
+from sgjax.stage1.pipeline import Candidates, Stage1, Stage1Config
+from sgjax.stage2.scene_cloud import SceneCloudConfig
 
-DEFAULT_MODEL_DIR = Path(__file__).resolve().parent / "models" / "ernet_default"
 
 KIND_NONE, KIND_EVALUATED, KIND_REFINED = 0, 1, 2
 KIND_NAMES = {KIND_NONE: None, KIND_EVALUATED: "evaluated", KIND_REFINED: "refined"}
@@ -77,10 +75,10 @@ class PlannerConfig:
     max_stage2_candidates: fixed Stage-2 batch; more candidates -> each object's best-matched first
         (round-robin over objects in match order).
     min_object_points: objects with fewer visible points are skipped (the reason is recorded).
-    max_scene_points, scene_voxel, scene_bounds: the Stage-2 scene cloud, made as in labelling
-        (`pointcloud.scene_cloud`: optional (lo [3], hi [3]) crop, one point per `scene_voxel` voxel,
-        then a seeded uniform subsample to at most max_scene_points, padded and masked). The defaults
-        match `train.label.LabelConfig`, so E-RNet sees the point density it was trained on.
+    scene_cloud: the Stage-2 scene cloud (`SceneCloudConfig`: optional crop, voxel grid, seeded
+        uniform subsample to a fixed size, padded and masked), made as in labelling so that E-RNet
+        sees the point density it was trained on (`envs.scene.stage2_scene_cloud` gives the
+        benchmark's, with its workspace crop).
     support_plane: the table as (nx, ny, nz, d), free space n . x + d > 0, for Stage 1's filter (v)
         (grippers reaching below the table); None: no such filter (e.g. camera-frame clouds).
     stage1_batch_sizes: Stage-1 batch sizes (objects per call): objects run in chunks of the largest
@@ -97,9 +95,7 @@ class PlannerConfig:
     use_refinement: bool = True
     max_stage2_candidates: int = 512
     min_object_points: int = 50
-    max_scene_points: int = 32768
-    scene_voxel: float = 0.003
-    scene_bounds: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
+    scene_cloud: SceneCloudConfig = SceneCloudConfig()
     support_plane: tuple[float, float, float, float] | None = None
     stage1_batch_sizes: tuple[int, ...] = (4,)
     avoid_distance: float = gripper.AVOID_DISTANCE
@@ -109,15 +105,10 @@ class PlannerConfig:
         object.__setattr__(self, "stage1_batch_sizes", tuple(sorted({int(b) for b in self.stage1_batch_sizes})))
         if not self.stage1_batch_sizes or self.stage1_batch_sizes[0] < 1:
             raise ValueError(f"stage1_batch_sizes must be positive integers, got {self.stage1_batch_sizes}")
-        if self.max_stage2_candidates < 1 or self.max_scene_points < 1:
-            raise ValueError("max_stage2_candidates and max_scene_points must be >= 1")
+        if self.max_stage2_candidates < 1:
+            raise ValueError("max_stage2_candidates must be >= 1")
         if self.min_object_points < pointcloud.MIN_POINTS:
             raise ValueError(f"min_object_points must be >= {pointcloud.MIN_POINTS} (a superquadric fit needs that many)")
-        if self.scene_bounds is not None:
-            lo, hi = (tuple(float(v) for v in b) for b in self.scene_bounds)
-            if len(lo) != 3 or len(hi) != 3 or not all(a < b for a, b in zip(lo, hi)):
-                raise ValueError(f"scene_bounds must be ((lo x, y, z), (hi x, y, z)) with lo < hi, got {self.scene_bounds}")
-            object.__setattr__(self, "scene_bounds", (lo, hi))
         if self.support_plane is not None:
             plane = tuple(float(v) for v in self.support_plane)
             if len(plane) != 4 or not np.all(np.isfinite(plane)) or not any(plane[:3]):
@@ -126,8 +117,6 @@ class PlannerConfig:
         if self.avoid_distance < 0 or not 0 <= self.avoid_angle_deg <= 180:
             raise ValueError(f"avoid_distance must be >= 0 and avoid_angle_deg in [0, 180], got "
                              f"{self.avoid_distance} and {self.avoid_angle_deg}")
-        if self.scene_voxel < 0:
-            raise ValueError(f"scene_voxel must be >= 0 (0: no voxel grid), got {self.scene_voxel}")
         check_thresholds(self)
 
     @property
@@ -281,38 +270,6 @@ def _stage2(graphdef, state, scene, scene_mask, poses, widths, slots, key, thres
 
 
 # ---------------------------------------------------------------------------------------------
-# Models.
-
-
-@functools.lru_cache(maxsize=1)
-def _load_default(path: str) -> ERNet:
-    return ernet.load_model(path)[0]
-
-
-def load_default_model() -> ERNet:
-    """The shipped E-RNet checkpoint (`sgjax/models/ernet_default/`, a `sgjax train` run directory).
-
-    Raises FileNotFoundError naming the path and how to make one when it is missing."""
-    if not (DEFAULT_MODEL_DIR / ernet.CHECKPOINT_DIR).is_dir():
-        raise FileNotFoundError(
-            f"no default E-RNet checkpoint at {DEFAULT_MODEL_DIR}: train one with "
-            "`sgjax train --data DIR --out RUN_DIR` and pass `--model RUN_DIR` (Planner(model=RUN_DIR) in Python), "
-            f"or copy a run directory to {DEFAULT_MODEL_DIR}"
-        )
-    return _load_default(str(DEFAULT_MODEL_DIR))
-
-
-def _as_model(model) -> ERNet:
-    if model is None:
-        return load_default_model()
-    if isinstance(model, ERNet):
-        return model
-    if isinstance(model, (str, os.PathLike)):
-        return ernet.load_model(model)[0]
-    raise TypeError(f"model must be an ERNet, a `sgjax train` run directory or None, got {type(model).__name__}")
-
-
-# ---------------------------------------------------------------------------------------------
 # Input checks (host side, clear errors).
 
 
@@ -377,12 +334,12 @@ def _viewpoint(viewpoint) -> np.ndarray:
 class Planner:
     """Stage 1 + Stage 2 with the database and the E-RNet weights on the device.
 
-    model: an ERNet, a `sgjax train` run directory, or None (the shipped default, `load_default_model`);
+    model: an ERNet, a `sgjax train` run directory, or None (the shipped default, `ernet.load_default_model`);
     db: a PrimitiveDB, or None (the default database from the cache, built on first use).
     """
 
     def __init__(self, model=None, db: PrimitiveDB | None = None, config: PlannerConfig = PlannerConfig()):
-        self.model = _as_model(model)
+        self.model = ernet.as_model(model)
         self.config = config
         if self.model.config.n_refinements != config.spec.num_refinements:
             raise ValueError(
@@ -470,9 +427,8 @@ class Planner:
         return self.stage1.chunked(clouds, obstacles, view, seed, cfg.support_plane, cfg.stage1_batch_sizes)
 
     def _scene(self, scene: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
-        """The fixed-size Stage-2 scene cloud: points [max_scene_points, 3] float32 and mask."""
-        cfg = self.config
-        points, mask, _ = pointcloud.scene_cloud(scene, cfg.max_scene_points, cfg.scene_voxel, None, cfg.scene_bounds, seed)
+        """The fixed-size Stage-2 scene cloud: points [scene_cloud.max_points, 3] float32 and mask."""
+        points, mask, _ = self.config.scene_cloud.make(scene, None, seed)
         return points, mask
 
     def _kept(self, candidates: list[Candidates], avoid: np.ndarray) -> list[np.ndarray]:
@@ -583,7 +539,7 @@ def stage2_subset(counts, budget: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _compile_count() -> int:
-    from sgjax.stage1 import _pipeline
+    from sgjax.stage1.pipeline import _pipeline
 
     return _pipeline._cache_size() + _stage2._cache_size()
 

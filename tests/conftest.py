@@ -12,7 +12,7 @@ os.environ.setdefault("XLA_FLAGS", "--xla_llvm_disable_expensive_passes=true --x
 
 import pytest  # noqa: E402
 
-from sgjax.primitive_db import DBConfig, build_database  # noqa: E402
+from sgjax.stage1.database import DBConfig, build_database  # noqa: E402
 
 
 @pytest.fixture(scope="session")

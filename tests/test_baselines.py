@@ -26,13 +26,15 @@ from eval.declutter import (
     make_benchmark_scene,
     run_scene,
 )
-from eval.gpd import GPDConfig
+from eval.gpd_sampler import GPDConfig
 from eval.methods import METHODS, MethodUnavailable, make_method, method_names
-from sgjax import ernet, gripper, pointcloud
-from sgjax import pointnetgpd as pg
-from sgjax.cli import main
-from sgjax.ernet import ERNet, ERNetConfig
-from sgjax.gripper import GripperSpec
+from sgjax.stage2 import crops, ernet
+from sgjax.geometry import gripper, pointcloud
+from sgjax.stage2 import pointnetgpd as pg
+from sgjax_cli import main
+from sgjax.stage2.ernet import ERNet, ERNetConfig
+from sgjax.stage2.scene_cloud import SceneCloudConfig
+from sgjax.geometry.gripper import GripperSpec
 from train import dataset
 from train.label import LabelConfig
 from train import train_pointnetgpd as tp
@@ -42,10 +44,10 @@ TINY = pg.PointNetGPDConfig.tiny()
 SCENE = DeclutterConfig(camera=CameraConfig(width=320, height=240), nthread=1)
 # Small shapes: 32 x 7 GPD samples over 3 depths x 2 placements, 64 candidate slots, a 4096-point scene.
 CONFIG = baselines.BaselineConfig(gpd=GPDConfig(num_samples=32, max_points=1024, depth_steps=3, lateral_steps=2),
-                                  max_candidates=64, max_scene_points=4096, stage1_batch_sizes=(1,))
+                                  max_candidates=64, scene_cloud=SceneCloudConfig(max_points=4096), stage1_batch_sizes=(1,))
 # Jitted once here: op-by-op (eager) execution of these compiles every primitive on its own.
-crop_closing = jax.jit(pg.crop_closing_regions, static_argnames=("spec", "n_points"))
-crop_enlarged = jax.jit(ernet.crop_regions, static_argnames=("spec", "n_points"))
+crop_closing = jax.jit(crops.crop_closing_regions, static_argnames=("spec", "n_points"))
+crop_enlarged = jax.jit(crops.crop_regions, static_argnames=("spec", "n_points"))
 prepare = jax.jit(pg.prepare_inputs, static_argnames=("spec", "config"))
 
 
@@ -75,7 +77,7 @@ def test_crop_is_exactly_the_closing_region():
         got = np.asarray(region.points[i])[np.asarray(region.mask[i])]
         world = got @ poses[i, :3, :3].T + poses[i, :3, 3]  # back to the world: the same points, in scene order
         np.testing.assert_allclose(world, scene[inside[i]], atol=1e-6)
-        assert np.asarray(ernet.in_closing_region_local(got[None], widths[i : i + 1], SPEC)).all()
+        assert np.asarray(crops.in_closing_region_local(got[None], widths[i : i + 1], SPEC)).all()
     # Truncation keeps the first n_points region points in scene order.
     short = crop_closing(scene, poses, widths, SPEC, n_points=8, scene_mask=scene_mask)
     np.testing.assert_array_equal(np.asarray(short.points), np.asarray(region.points)[:, :8])
@@ -173,10 +175,10 @@ def test_checkpoint_round_trip_and_clear_errors(pointnetgpd_run, tmp_path):
 
 
 def test_missing_default_checkpoints_name_the_path_and_command(monkeypatch, tmp_path):
-    from sgjax import planner
+    from sgjax.stage2 import checkpoint
 
-    monkeypatch.setattr(pg, "DEFAULT_MODEL_DIR", tmp_path / "pointnetgpd_default")
-    monkeypatch.setattr(planner, "DEFAULT_MODEL_DIR", tmp_path / "ernet_default")
+    monkeypatch.setattr(checkpoint, "POINTNETGPD_DEFAULT_DIR", tmp_path / "pointnetgpd_default")
+    monkeypatch.setattr(checkpoint, "ERNET_DEFAULT_DIR", tmp_path / "ernet_default")
     for name in ("pointnetgpd", "s1+pointnetgpd"):
         with pytest.raises(FileNotFoundError, match=r"pointnetgpd_default.*sgjax train --network pointnetgpd"):
             make_method(name, config=CONFIG)
@@ -214,7 +216,7 @@ def check_grasp(decision, points, labels):
 def expected_pointnetgpd(method, points, labels, view, seed):
     """The candidate the method should execute: recomputed from its parts."""
     cands = method.generator(points, labels, view, seed)
-    scene, mask, _ = pointcloud.scene_cloud(points, CONFIG.max_scene_points, CONFIG.scene_voxel, None, None, seed)
+    scene, mask, _ = pointcloud.scene_cloud(points, CONFIG.scene_cloud.max_points, CONFIG.scene_cloud.voxel, None, None, seed)
     out = pg.score(method.graphdef, method.state, scene, cands.poses, cands.widths, mask, key=jax.random.key(seed))
     prob = np.where(np.asarray(out.valid) & (np.arange(len(cands.widths)) < cands.n), np.asarray(out.prob), -1)
     return cands, int(np.argmax(prob)), float(prob.max())

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from sgjax import pointcloud
-from sgjax.cli import main
+from sgjax.geometry import pointcloud
+from sgjax_cli import main
 
 
 def test_example_then_fit_json_and_mesh(tmp_path, capsys):
@@ -82,7 +82,7 @@ def test_bad_files_give_a_message_and_a_nonzero_exit(tmp_path, capsys, name, con
 
 def test_console_entry_point_runs_as_a_process(tmp_path):
     out = subprocess.run(
-        [sys.executable, "-m", "sgjax.cli", "fit", str(tmp_path / "nothing.npy")], capture_output=True, text=True
+        [sys.executable, "-m", "sgjax_cli", "fit", str(tmp_path / "nothing.npy")], capture_output=True, text=True
     )
     assert out.returncode == 2 and "no such file" in out.stderr
 

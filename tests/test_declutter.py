@@ -15,16 +15,10 @@ from envs.objects import tiny_object_set
 from eval import declutter, metrics, report
 from eval.benchmark import run_benchmark, run_key
 from eval.declutter import DeclutterConfig, run_scene
-from eval.methods import (
-    METHODS,
-    Decision,
-    MethodUnavailable,
-    UnknownMethod,
-    make_method,
-    near_grasps,
-)
-from sgjax.gripper import GripperSpec
-from sgjax.cli import main
+from eval.methods import METHODS, MethodUnavailable, UnknownMethod, make_method
+from eval.protocol import Decision, near_grasps
+from sgjax.geometry.gripper import GripperSpec
+from sgjax_cli import main
 
 # Small camera images keep each observation at ~60 ms; 3-4 objects keep a scene at a few seconds.
 CONFIG = DeclutterConfig(camera=CameraConfig(width=320, height=240), nthread=1)
@@ -277,7 +271,7 @@ def test_benchmark_resumes_and_writes_tables_and_pictures(tmp_path, objects):
 
 def test_resume_key_covers_the_methods_own_settings(objects):
     """A method's changed settings (its defaults included) must not resume logs written under the old ones."""
-    from eval.gpd import GPDConfig
+    from eval.gpd_sampler import GPDConfig
 
     key = lambda cfg: run_key("gpd", {}, 2, objects, CONFIG, cfg)
     assert key(GPDConfig()) == key(GPDConfig())
@@ -336,8 +330,9 @@ def test_supergrasp_methods_run_a_tiny_scene(objects, small_db):
     import jax.numpy as jnp
     from flax import nnx
 
-    from sgjax.ernet import ERNet, ERNetConfig
+    from sgjax.stage2.ernet import ERNet, ERNetConfig
     from sgjax.planner import PlannerConfig
+    from sgjax.stage2.scene_cloud import SceneCloudConfig
 
     # A tiny E-RNet rigged to rate every candidate 0.98, so the planner always executes a grasp.
     tiny = ERNetConfig.tiny(backbone=dataclasses.replace(ERNetConfig.tiny().backbone, sampler="random"))
@@ -345,7 +340,7 @@ def test_supergrasp_methods_run_a_tiny_scene(objects, small_db):
     last = model.eval_head.layers[-1]
     last.kernel[...] = jnp.zeros_like(last.kernel[...])
     last.bias[...] = jnp.asarray([-2.0, 2.0], jnp.float32)
-    config = PlannerConfig(max_stage2_candidates=64, max_scene_points=4096, stage1_batch_sizes=(1,))
+    config = PlannerConfig(max_stage2_candidates=64, scene_cloud=SceneCloudConfig(max_points=4096), stage1_batch_sizes=(1,))
     for name in ("supergrasp", "supergrasp-norefine"):
         assert METHODS[name].unavailable_reason() is None
         method = make_method(name, model=model, db=small_db, config=config)

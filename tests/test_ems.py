@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from sgjax import ems, pointcloud, synthetic
-from sgjax.superquadric import Superquadric, relative_scale_error, tangent_radial_distance_local, to_local
+from sgjax.stage1 import ems
+from sgjax.geometry import pointcloud, synthetic
+from sgjax.geometry.superquadric import Superquadric, relative_scale_error, tangent_radial_distance_local, to_local
 
 N = 800
 # Shapes across the eps range and aspect ratios (semi-axes in metres, (eps1, eps2)).
@@ -131,7 +132,7 @@ def test_fit_moves_with_the_cloud(recovery):
         np.testing.assert_allclose(np.sort(b.scale), np.sort(a.scale), rtol=0.02)
         np.testing.assert_allclose(b.translation, np.asarray(a.translation) @ rot.T + shift, atol=2e-3)
         # the moved fit describes the moved surface of the original fit
-        from sgjax.superquadric import sample_surface
+        from sgjax.geometry.superquadric import sample_surface
 
         pts, _ = sample_surface(a.superquadric, 300, seed=0)
         assert np.median(surface_distance(pts @ rot.T + shift, b.superquadric)) < 1e-3

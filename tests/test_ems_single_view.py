@@ -13,8 +13,9 @@ import trimesh
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial.transform import Rotation
 
-from sgjax import ems, pointcloud
-from sgjax.primitives import Primitive, primitive_mesh, surface_points
+from sgjax.stage1 import ems
+from sgjax.geometry import pointcloud
+from sgjax.stage1.primitives import Primitive, primitive_mesh, surface_points
 
 CAMERA = np.array([0.0, -0.45, 0.55])  # envs.camera.CameraConfig().position
 N = 800

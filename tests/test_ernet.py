@@ -1,4 +1,4 @@
-"""E-RNet: crop geometry against sgjax.gripper, input preparation, losses, shapes, scoring, bad input."""
+"""E-RNet: crop geometry against sgjax.geometry.gripper, input preparation, losses, shapes, scoring, bad input."""
 
 from __future__ import annotations
 
@@ -9,11 +9,12 @@ import optax
 import pytest
 from flax import nnx
 
-from sgjax import ernet, gripper
-from sgjax.ernet import ERNet, ERNetConfig
-from sgjax.gripper import GripperSpec
-from sgjax.rotations import random_rotation
-from sgjax.superquadric import pose_matrix
+from sgjax.stage2 import crops, ernet
+from sgjax.geometry import gripper
+from sgjax.stage2.ernet import ERNet, ERNetConfig
+from sgjax.geometry.gripper import GripperSpec
+from sgjax.geometry.rotations import random_rotation
+from sgjax.geometry.superquadric import pose_matrix
 
 SPEC = GripperSpec()
 TINY = ERNetConfig.tiny()
@@ -33,7 +34,7 @@ def scene_near(poses: np.ndarray, n: int, seed: int) -> np.ndarray:
     return np.einsum("nij,nj->ni", poses[which, :3, :3], local).astype(np.float32) + poses[which, :3, 3]
 
 
-crop = jax.jit(ernet.crop_regions, static_argnums=(3, 4))
+crop = jax.jit(crops.crop_regions, static_argnums=(3, 4))
 in_closing = jax.jit(gripper.points_in_closing_region, static_argnums=3)
 in_enlarged = jax.jit(gripper.points_in_enlarged_region, static_argnums=3)
 to_local = jax.jit(gripper.to_gripper_frame)
@@ -49,8 +50,8 @@ def test_local_region_tests_match_gripper():
     closing = np.asarray(in_closing(world[None], poses, widths, SPEC))
     enlarged = np.asarray(in_enlarged(world[None], poses, widths, SPEC))
     assert closing.any() and (enlarged & ~closing).any()
-    np.testing.assert_array_equal(np.asarray(ernet.in_closing_region_local(local, widths, SPEC)), closing)
-    np.testing.assert_array_equal(np.asarray(ernet.in_enlarged_region_local(local, widths, SPEC)), enlarged)
+    np.testing.assert_array_equal(np.asarray(crops.in_closing_region_local(local, widths, SPEC)), closing)
+    np.testing.assert_array_equal(np.asarray(crops.in_enlarged_region_local(local, widths, SPEC)), enlarged)
 
 
 @pytest.mark.parametrize("seed,width,capacity", [(1, 0.07, 1024), (2, 0.08, 32)])
@@ -85,11 +86,11 @@ def test_prepare_inputs_anchor_is_the_closing_region():
         n = min(len(real), TINY.n_points)
         assert mask[m].sum() == n
         np.testing.assert_allclose(points[m][mask[m]], real[:n])  # the first real points (shuffled scene)
-        closing = np.flatnonzero(np.asarray(ernet.in_closing_region_local(points[m][None], widths[m : m + 1], SPEC))[0] & mask[m])
+        closing = np.flatnonzero(np.asarray(crops.in_closing_region_local(points[m][None], widths[m : m + 1], SPEC))[0] & mask[m])
         am = np.asarray(inputs.anchor_mask[m])
         np.testing.assert_array_equal(np.asarray(inputs.anchor_index[m])[am], closing[: TINY.n_anchor])
         # Points outside the enlarged region never reach the crop.
-        assert np.asarray(ernet.in_enlarged_region_local(points[m][mask[m]][None], widths[m : m + 1], SPEC)).all()
+        assert np.asarray(crops.in_enlarged_region_local(points[m][mask[m]][None], widths[m : m + 1], SPEC)).all()
 
 
 def test_prepare_inputs_training_noise_and_shuffle():
@@ -103,7 +104,7 @@ def test_prepare_inputs_training_noise_and_shuffle():
     assert not np.array_equal(np.asarray(a.points), np.asarray(c.points))
     for m in range(6):
         kept = np.asarray(a.points[m])[np.asarray(a.mask[m])]
-        assert np.asarray(ernet.in_enlarged_region_local(kept[None], widths[m : m + 1], SPEC)).all()
+        assert np.asarray(crops.in_enlarged_region_local(kept[None], widths[m : m + 1], SPEC)).all()
         # Each kept point is a source point moved by noise only (a few mm at most).
         src = np.asarray(region.points[m])[np.asarray(region.mask[m])]
         d = np.min(np.linalg.norm(kept[:, None] - src[None], axis=-1), axis=1)

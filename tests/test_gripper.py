@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from sgjax.gripper import (
+from sgjax.geometry.gripper import (
     GripperSpec,
     check_width,
     closing_region,
@@ -26,8 +26,8 @@ from sgjax.gripper import (
     to_world,
     width_in_range,
 )
-from sgjax.rotations import random_rotation
-from sgjax.superquadric import pose_matrix
+from sgjax.geometry.rotations import random_rotation
+from sgjax.geometry.superquadric import pose_matrix
 
 SPEC = GripperSpec()
 WIDTH = 0.06  # closing region |x| <= 0.03, |y| <= 0.01, 0 <= z <= 0.05
@@ -277,7 +277,7 @@ def test_bad_shapes_raise_clear_errors():
 
 
 def test_local_regions_agree_with_world_boxes():
-    from sgjax.gripper import collides_with_points, local_regions, points_in_closing_region, to_gripper_frame
+    from sgjax.geometry.gripper import collides_with_points, local_regions, points_in_closing_region, to_gripper_frame
 
     rng = np.random.default_rng(3)
     spec = GripperSpec()
@@ -298,7 +298,7 @@ def test_local_regions_agree_with_world_boxes():
 
 
 def test_frames_match_the_matrix_formula_batched():
-    from sgjax.rotations import points_from_frame, points_to_frame
+    from sgjax.geometry.rotations import points_from_frame, points_to_frame
 
     poses = np.asarray(random_pose(11, (5,)), np.float64)
     pts = np.random.default_rng(0).uniform(-0.3, 0.3, (7, 3))
@@ -313,7 +313,7 @@ def test_frames_match_the_matrix_formula_batched():
 
 
 def test_swept_hand_is_the_union_of_hand_positions_along_the_approach():
-    from sgjax.gripper import local_regions
+    from sgjax.geometry.gripper import local_regions
 
     rng = np.random.default_rng(4)
     local = jnp.asarray(rng.uniform([-0.06, -0.03, -0.12], [0.06, 0.03, 0.07], (20000, 3)), jnp.float32)
@@ -329,7 +329,7 @@ def test_swept_hand_is_the_union_of_hand_positions_along_the_approach():
 
 
 def test_segment_regions_are_local_regions_along_the_segments():
-    from sgjax.gripper import local_regions, segment_regions
+    from sgjax.geometry.gripper import local_regions, segment_regions
 
     rng = np.random.default_rng(5)
     local = jnp.asarray(rng.uniform([-0.07, -0.03, -0.12], [0.07, 0.03, 0.07], (3000, 3)), jnp.float32)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from envs.objects import tiny_object_set
-from sgjax.stage1 import Stage1
+from sgjax.stage1.pipeline import Stage1
 from train import dataset
 from train.label import LabelConfig, label, label_scene, scene_seed, summarize
 

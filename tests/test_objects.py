@@ -12,8 +12,8 @@ import trimesh
 from envs import meshprep, objects, procedural
 from envs.meshprep import MeshPrepError, PrepConfig
 from envs.objects import MeshSource
-from sgjax.cli import main
-from sgjax.gripper import GripperSpec
+from sgjax_cli import main
+from sgjax.geometry.gripper import GripperSpec
 
 
 @pytest.fixture(autouse=True)

@@ -13,11 +13,12 @@ import pytest
 from flax import nnx
 
 from sgjax import planner as planner_mod
-from sgjax import synthetic
-from sgjax.ernet import ERNet, ERNetConfig
-from sgjax.gripper import GripperSpec, near_grasps, refined_pose
+from sgjax.geometry import synthetic
+from sgjax.stage2 import checkpoint, ernet
+from sgjax.stage2.ernet import ERNet, ERNetConfig
+from sgjax.geometry.gripper import GripperSpec, near_grasps, refined_pose
 from sgjax.planner import Planner, PlannerConfig, decide, select_grasp
-from sgjax.superquadric import Superquadric
+from sgjax.geometry.superquadric import Superquadric
 
 SPEC = GripperSpec()
 CAMERA = np.array([0.4, -0.1, 0.6])
@@ -178,7 +179,7 @@ def test_more_candidates_than_stage2_takes_keeps_each_objects_best():
 
 
 def test_deterministic_and_never_recompiles(planner, scene, first_plan):
-    from sgjax.stage1 import _pipeline
+    from sgjax.stage1.pipeline import _pipeline
 
     sizes = (_pipeline._cache_size(), planner_mod._stage2._cache_size())
     again = planner.plan(*scene, viewpoint=CAMERA, seed=0)
@@ -307,9 +308,9 @@ def test_bad_target_viewpoint_and_masks(planner, scene, small_db):
 
 
 def test_missing_default_model_says_how_to_make_one(tmp_path, monkeypatch):
-    monkeypatch.setattr(planner_mod, "DEFAULT_MODEL_DIR", tmp_path / "ernet_default")
+    monkeypatch.setattr(checkpoint, "ERNET_DEFAULT_DIR", tmp_path / "ernet_default")
     with pytest.raises(FileNotFoundError, match="ernet_default.*sgjax train --data DIR --out RUN_DIR.*--model RUN_DIR"):
-        planner_mod.load_default_model()
+        ernet.load_default_model()
 
 
 # ---------------------------------------------------------------------------------------------
@@ -320,20 +321,20 @@ def save_run_dir(model: ERNet, run_dir) -> None:
     """A `sgjax train` run directory holding `model` (the trainer's checkpoint layout, no training)."""
     import orbax.checkpoint as ocp
 
-    from sgjax import ernet
+    from sgjax.stage2 import checkpoint
     from train import trainer
 
     manager = trainer._checkpoint_manager(str(run_dir))
     meta = {"epochs_done": 1, "history": [], "model_config": model.config.to_dict()}
-    args = {ernet.PARAMS_ITEM: ocp.args.StandardSave(nnx.state(model)), ernet.META_ITEM: ocp.args.JsonSave(meta)}
+    args = {checkpoint.PARAMS_ITEM: ocp.args.StandardSave(nnx.state(model)), checkpoint.META_ITEM: ocp.args.JsonSave(meta)}
     manager.save(1, args=ocp.args.Composite(**args))
     manager.wait_until_finished()
     manager.close()
 
 
 def test_cli_plan(tmp_path, capsys, monkeypatch, small_db):
-    from sgjax.cli import main
-    from sgjax.primitive_db import save_database
+    from sgjax_cli import main
+    from sgjax.stage1.database import save_database
 
     run, db = tmp_path / "run", tmp_path / "db.npz"
     save_run_dir(rigged([0.0, 5.0], [0.0, 0.0, 0.0]), run)
@@ -363,6 +364,6 @@ def test_cli_plan(tmp_path, capsys, monkeypatch, small_db):
     assert "mask" in capsys.readouterr().err
     assert main(["plan", *base, "--mask", str(tmp_path / "missing.npy")]) == 2
     assert "no such file" in capsys.readouterr().err
-    monkeypatch.setattr(planner_mod, "DEFAULT_MODEL_DIR", tmp_path / "ernet_default")
+    monkeypatch.setattr(checkpoint, "ERNET_DEFAULT_DIR", tmp_path / "ernet_default")
     assert main(["plan", str(tmp_path / "scene.npy"), "--mask", str(tmp_path / "mask.npy"), "--db", str(db)]) == 2
     assert "sgjax train" in capsys.readouterr().err

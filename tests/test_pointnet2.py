@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from flax import nnx
 
-from sgjax import pointnet2 as pn
-from sgjax.pointnet2 import BackboneConfig, SetAbstractionConfig
+from sgjax.stage2 import pointnet2 as pn
+from sgjax.stage2.pointnet2 import BackboneConfig, SetAbstractionConfig
 
 SMALL = BackboneConfig(
     set_abstraction=(SetAbstractionConfig(16, 0.02, 8, (16, 16)), SetAbstractionConfig(4, 0.05, 8, (16, 24))),

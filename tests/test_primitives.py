@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sgjax.gripper import GripperSpec, points_in_closing_region
-from sgjax.primitive_db import DBConfig, build_database, database_shapes
-from sgjax.primitives import (
+from sgjax.geometry.gripper import GripperSpec, points_in_closing_region
+from sgjax.stage1.database import DBConfig, build_database, database_shapes
+from sgjax.stage1.primitives import (
     FRAME_SYMMETRIES,
     Primitive,
     canonical_grasp,
@@ -113,7 +113,7 @@ def test_symmetrize_closes_the_set_and_dedups_jaw_flips():
 
 
 def test_db_build_is_deterministic_and_round_trips(tmp_path):
-    from sgjax.primitive_db import load_database_file, save_database
+    from sgjax.stage1.database import load_database_file, save_database
 
     cfg = DBConfig(scales=(0.06,), cuboid_ratios=(0.5,), cylinder_aspects=(1.5,), elliptical_ratios=(0.6,),
                    elliptical_aspects=(1.0,), frustum_ratios=(0.6,), frustum_aspects=(1.2,))
@@ -130,7 +130,7 @@ def test_db_build_is_deterministic_and_round_trips(tmp_path):
 
 
 def test_bad_database_files(tmp_path):
-    from sgjax.primitive_db import load_database_file
+    from sgjax.stage1.database import load_database_file
 
     with pytest.raises(FileNotFoundError, match="sgjax build-db"):
         load_database_file(tmp_path / "missing.npz")

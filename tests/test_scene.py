@@ -8,10 +8,11 @@ import trimesh
 import pytest
 from scipy.spatial.transform import Rotation
 
-from envs import camera, gripper_model, trial
+from envs import camera, gripper_model
+from envs import rollout as trial_contract
 from envs import scene as scene_lib
 from envs.objects import tiny_object_set
-from sgjax.gripper import GripperSpec, gripper_boxes
+from sgjax.geometry.gripper import GripperSpec, gripper_boxes
 
 IDENTITY = [1.0, 0.0, 0.0, 0.0]
 
@@ -169,14 +170,14 @@ def test_camera_config_errors():
 
 def test_gripper_geoms_match_the_sgjax_gripper_boxes(scene):
     """The simulated gripper frame is the sgjax gripper frame: placed by (pose, width), its MuJoCo
-    boxes coincide with sgjax.gripper.gripper_boxes."""
+    boxes coincide with sgjax.geometry.gripper.gripper_boxes."""
     spec = GripperSpec()
     pose = np.eye(4)
     pose[:3, :3] = Rotation.from_euler("xyz", [0.3, -1.1, 2.0]).as_matrix()
     pose[:3, 3] = [0.1, -0.2, 0.4]
     width = 0.05
-    lay = trial.layout(scene)
-    state = trial.initial_states(scene, trial.make_schedule(pose[None], [width], spec), lay)[0]
+    lay = trial_contract.layout(scene)
+    state = trial_contract.initial_states(scene, trial_contract.make_schedule(pose[None], [width], spec), lay)[0]
     data = mujoco.MjData(scene.model)
     mujoco.mj_setState(scene.model, data, state, scene_lib.STATE_SPEC)
     data.qpos[lay.gripper_qpos : lay.gripper_qpos + 3] = pose[:3, 3]  # the grasp pose, not the pre-grasp

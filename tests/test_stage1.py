@@ -8,7 +8,7 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from sgjax.coarse_filter import (
+from sgjax.stage1.filters import (
     NO_PLANE,
     FilterConfig,
     coarse_filter,
@@ -18,8 +18,8 @@ from sgjax.coarse_filter import (
     lift_to_plane,
     removal_counts,
 )
-from sgjax.gripper import GripperSpec
-from sgjax.matching import (
+from sgjax.geometry.gripper import GripperSpec
+from sgjax.stage1.matching import (
     MatchConfig,
     MatchDB,
     MatchResult,
@@ -28,10 +28,10 @@ from sgjax.matching import (
     match_score,
     transfer_grasps,
 )
-from sgjax.pointcloud import CloudError
-from sgjax.primitives import Primitive, canonical_grasp, grasp_frame, primitive_mesh
-from sgjax.stage1 import Stage1, Stage1Config
-from sgjax.superquadric import Superquadric
+from sgjax.geometry.pointcloud import CloudError
+from sgjax.stage1.primitives import Primitive, canonical_grasp, grasp_frame, primitive_mesh
+from sgjax.stage1.pipeline import Stage1, Stage1Config
+from sgjax.geometry.superquadric import Superquadric
 
 SPEC = GripperSpec()
 CAMERA = np.array([0.45, -0.1, 0.55])
@@ -97,7 +97,7 @@ def test_equivalent_parameterisation_takes_part():
     cfg = MatchConfig(K1=2, K2=2)
     square = (np.array([0.03, 0.03, 0.05]), np.array([0.1, 0.1]))
     other = (np.array([0.05, 0.02, 0.03]), np.array([0.1, 0.1]))
-    from sgjax.matching import parameterisations
+    from sgjax.stage1.matching import parameterisations
 
     scale, eps, valid = parameterisations(jnp.asarray([square[0], other[0]]), jnp.asarray([square[1], other[1]]), cfg)
     mdb = MatchDB(scale, eps, valid, jnp.zeros((2, 1, 4, 4)), jnp.zeros((2, 1)), jnp.ones((2, 1), bool))
@@ -203,7 +203,7 @@ def test_each_filter_removes_exactly_its_case():
 def test_shadow_depth_blocks_a_finger_in_a_neighbours_hidden_side():
     """Filter (iv) with shadow_depth: a neighbour is seen only on its camera-facing faces; a finger that
     enters it through a hidden face touches no observed point, but it does enter the space they hide."""
-    from sgjax.gripper import local_regions, to_gripper_frame
+    from sgjax.geometry.gripper import local_regions, to_gripper_frame
 
     camera = np.array([0.4, -0.45, 0.55])
 
@@ -481,7 +481,7 @@ def test_scene_cloud_removes_grasps_through_the_table(stage):
 
 def test_stage1_keeps_hands_out_of_the_space_a_neighbour_hides(stage):
     """End to end, (iv) tests each obstacle point's camera-ray shadow (FilterConfig.shadow_depth)."""
-    from sgjax.gripper import segment_regions, to_gripper_frame
+    from sgjax.geometry.gripper import segment_regions, to_gripper_frame
 
     cloud, _ = single_view(Primitive("cuboid", (0.09, 0.054, 0.027)))
     # A box 8 mm beyond the target's end, between it and the camera: the side facing the target is
@@ -505,7 +505,7 @@ def test_stage1_keeps_hands_out_of_the_space_a_neighbour_hides(stage):
 
 
 def test_no_recompile_and_deterministic(stage):
-    from sgjax.stage1 import _pipeline
+    from sgjax.stage1.pipeline import _pipeline
 
     cloud, _ = single_view(Primitive("cylinder", (0.045, 0.045, 0.1)))
     a = stage(cloud, viewpoint=CAMERA)
@@ -574,7 +574,7 @@ def test_bad_object_clouds_raise_clear_errors(stage, cloud, message):
 
 
 def test_adapt_to_cloud_recentres_and_applies_the_width_rule():
-    from sgjax.gripper import adapt_to_cloud, to_gripper_frame
+    from sgjax.geometry.gripper import adapt_to_cloud, to_gripper_frame
 
     cloud = _box_cloud(half=(0.015, 0.04, 0.03))  # 3 cm across x, top face at z = 0.03
     down, across = np.array([0, 0, -1.0]), np.array([1.0, 0, 0])

@@ -7,8 +7,8 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from sgjax.rotations import random_rotation, so3_exp
-from sgjax.superquadric import (
+from sgjax.geometry.rotations import random_rotation, so3_exp
+from sgjax.geometry.superquadric import (
     Superquadric,
     canonicalize,
     dual,

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 from flax import nnx
 
-from sgjax import ernet
-from sgjax.ernet import ERNetConfig
+from sgjax.stage2 import crops, ernet
+from sgjax.stage2.ernet import ERNetConfig
 from train import dataset, trainer
 
 # Random centroid sampling (FPS is covered in test_ernet.py); no noise, which only slows overfitting.
@@ -98,7 +98,7 @@ def test_synthetic_samples_are_labelled_by_geometry(samples):
     labels, refine = samples["label"], samples["refine_labels"]
     assert 0 < labels.mean() < 1 and (0 < refine.mean(0)).all() and (refine.mean(0) < 1).all()
     # Stored points lie in the enlarged region of the stored width.
-    inside = ernet.in_enlarged_region_local(samples["region"][:8], samples["width"][:8], CONFIG.spec)
+    inside = crops.in_enlarged_region_local(samples["region"][:8], samples["width"][:8], CONFIG.spec)
     assert np.asarray(inside)[samples["region_mask"][:8]].all()
     again = dataset.synthetic_samples(96, seed=0)
     np.testing.assert_array_equal(again["region"], samples["region"])
@@ -187,7 +187,7 @@ def test_interrupted_run_resumes_to_identical_result(trained, samples, tmp_path)
 
 
 def test_cli_train_synthetic_then_resume_and_bad_data(tmp_path, capsys):
-    from sgjax import cli
+    import sgjax_cli as cli
 
     data, out = tmp_path / "data", tmp_path / "run"
     args = ["train", "--data", str(data), "--out", str(out), "--model", "tiny", "--batch-size", "16", "--quiet"]

@@ -9,6 +9,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from envs import gripper_model, trial
+from envs import rollout as trial_contract
 from envs import scene as scene_lib
 from envs.objects import tiny_object_set
 from envs.trial import Outcome, Phase
@@ -92,15 +93,15 @@ def test_instability_after_a_decided_failure_does_not_change_it(pair):
 
     config = trial.TrialConfig(early_stop=False)
     poses, widths = np.stack([ACROSS_X, ACROSS_X]), np.array([0.075, 0.065])  # through the neighbour; clean
-    schedule = trial.make_schedule(poses, widths, pair.gripper, config, pair.model.opt.timestep)
-    judge = trial.Judge.make(pair, np.zeros(2, int), trial.layout(pair), config)
+    schedule = trial_contract.make_schedule(poses, widths, pair.gripper, config, pair.model.opt.timestep)
+    judge = trial_contract.Judge.make(pair, np.zeros(2, int), trial_contract.layout(pair), config)
     rollout = rollout_cpu(pair, judge, schedule)
-    assert trial.classify(judge, rollout).outcome.tolist() == [Outcome.COLLISION_APPROACH, Outcome.SUCCESS]
+    assert trial_contract.classify(judge, rollout).outcome.tolist() == [Outcome.COLLISION_APPROACH, Outcome.SUCCESS]
 
     def outcome_with(field: str, index: tuple, value: float) -> list:
         changed = getattr(rollout, field).copy()
         changed[index] = value
-        return trial.classify(judge, dataclasses.replace(rollout, **{field: changed})).outcome.tolist()
+        return trial_contract.classify(judge, dataclasses.replace(rollout, **{field: changed})).outcome.tolist()
 
     flung = 2 * config.max_object_speed
     assert outcome_with("max_speed", (0, Phase.DISTURB), flung) == [Outcome.COLLISION_APPROACH, Outcome.SUCCESS]
@@ -163,7 +164,7 @@ def test_refinements_give_four_labels_per_grasp(pair):
 def test_schedule_reaches_the_grasp_and_turns_down():
     spec = pair_spec = scene_lib.GripperSpec()
     config = trial.TrialConfig()
-    schedule = trial.make_schedule(ACROSS_X[None], [0.06], spec, config)
+    schedule = trial_contract.make_schedule(ACROSS_X[None], [0.06], spec, config)
     steps = np.cumsum(schedule.phase_steps)
     assert schedule.nstep == steps[-1] == sum(config.phase_steps(0.002))
     pre = ACROSS_X[:3, 3] - config.pregrasp_distance * ACROSS_X[:3, 2]
@@ -173,7 +174,7 @@ def test_schedule_reaches_the_grasp_and_turns_down():
     assert schedule.finger_ctrl[0, steps[Phase.CLOSE] - 1] == pytest.approx(config.close_target)
     np.testing.assert_allclose(axis_z(schedule.mocap_quat[0, -1]), [0, 0, -1], atol=1e-9)
     assert schedule.phase_force[Phase.DISTURB] == 1.0 and schedule.phase_force.sum() == 1.0
-    again = trial.make_schedule(ACROSS_X[None], [0.06], pair_spec, config)
+    again = trial_contract.make_schedule(ACROSS_X[None], [0.06], pair_spec, config)
     np.testing.assert_array_equal(again.mocap_quat, schedule.mocap_quat)
 
 

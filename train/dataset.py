@@ -17,7 +17,7 @@ writes shards with `write_shard` (atomic .npz, no pickles); training reads a dir
 
 A shard (compressed .npz) stores each field stacked over its samples ([S, ...]); `object_name` as a
 fixed-width unicode array. Regions with more than P points should be randomly subsampled by the writer
-(`sgjax.ernet.crop_regions` on a shuffled scene does this).
+(`sgjax.stage2.crops.crop_regions` on a shuffled scene does this).
 """
 
 from __future__ import annotations
@@ -31,9 +31,9 @@ from collections.abc import Iterator, Mapping, Sequence
 import jax
 import numpy as np
 
-from sgjax.ernet import DEFAULT_SPEC
-from sgjax.files import atomic_write
-from sgjax.gripper import GripperSpec
+from sgjax.stage2.ernet import DEFAULT_SPEC
+from sgjax.utils.files import atomic_write
+from sgjax.geometry.gripper import GripperSpec
 
 REGION_POINTS = 2048  # P: capacity of a stored enlarged region
 N_REFINEMENTS = 3
@@ -312,7 +312,7 @@ def synthetic_samples(
 
 
 def _enlarged_mask(points: np.ndarray, width: np.ndarray, spec: GripperSpec) -> np.ndarray:
-    """Grasp-frame points[n, N, 3] in the enlarged region of widths[n] (sgjax.gripper geometry)."""
-    from sgjax.ernet import in_enlarged_region_local
+    """Grasp-frame points[n, N, 3] in the enlarged region of widths[n] (sgjax.geometry.gripper geometry)."""
+    from sgjax.stage2.crops import in_enlarged_region_local
 
     return np.asarray(in_enlarged_region_local(points, width.astype(np.float32), spec))

@@ -5,7 +5,7 @@ camera, pick one visible target at random, run Stage 1 on its single-view cloud 
 for the collision filter), execute `grasps_per_scene` randomly chosen candidates and their three
 refinement variants (deepen 0.008 m, rotate -15 / 0 / +15 deg) in parallel, and store one sample per
 executed grasp (`train.dataset.SAMPLE_FIELDS`): its enlarged region cropped from the Stage-2 scene
-cloud (`sgjax.pointcloud.scene_cloud`, the same cloud the planner scores on), the grasp, its label and
+cloud (`sgjax.geometry.pointcloud.scene_cloud`, the same cloud the planner scores on), the grasp, its label and
 the three refinement labels.
 
 Output directory:
@@ -32,11 +32,11 @@ import numpy as np
 from envs import camera as camera_lib
 from envs import scene as scene_lib
 from envs.trial import Outcome, TrialConfig, check_backend, run_grasp_with_refinements
-from sgjax import pointcloud
-from sgjax.ernet import crop_regions
-from sgjax.files import atomic_write_text
-from sgjax.gripper import GripperSpec
-from sgjax.stage1 import Stage1, Stage1Config
+from sgjax.stage2.crops import crop_regions
+from sgjax.stage2.scene_cloud import SceneCloudConfig
+from sgjax.utils.files import atomic_write_text
+from sgjax.geometry.gripper import GripperSpec
+from sgjax.stage1.pipeline import Stage1, Stage1Config
 from train import dataset
 
 CONFIG_FILE = "label_config.json"
@@ -50,8 +50,8 @@ class LabelConfig:
     n_objects: objects per scene (paper: 5). grasps_per_scene: candidates executed per scene, each with
     its 3 refinements (4 trials). scenes_per_shard: scenes per output file (the resume granularity).
     min_target_points: a target must show at least this many camera points (Stage 1's own minimum).
-    voxel, max_scene_points, workspace_margin: the Stage-2 scene cloud (`sgjax.pointcloud.scene_cloud`)
-    cropped to the workspace plus this margin.
+    voxel, max_scene_points, workspace_margin: the Stage-2 scene cloud (`scene_cloud`, a
+    `sgjax.stage2.scene_cloud.SceneCloudConfig`) cropped to the workspace plus this margin.
     """
 
     n_objects: int = 5
@@ -60,9 +60,9 @@ class LabelConfig:
     min_target_points: int = 50
     object_set: str = "seen"
     seed: int = 0
-    voxel: float = 0.003
-    max_scene_points: int = 32768
-    workspace_margin: float = 0.05
+    voxel: float = SceneCloudConfig.voxel
+    max_scene_points: int = SceneCloudConfig.max_points
+    workspace_margin: float = scene_lib.WORKSPACE_MARGIN
     scene: scene_lib.SceneConfig = scene_lib.SceneConfig()
     camera: camera_lib.CameraConfig = camera_lib.CameraConfig()
     trial: TrialConfig = TrialConfig()
@@ -78,9 +78,9 @@ class LabelConfig:
         return self.stage1.spec
 
     @property
-    def scene_bounds(self) -> tuple[tuple, tuple]:
-        """The Stage-2 scene cloud's crop: the workspace grown by workspace_margin (lo [3], hi [3])."""
-        return scene_lib.workspace_bounds(self.scene, self.workspace_margin)
+    def scene_cloud(self) -> SceneCloudConfig:
+        """The Stage-2 scene cloud: cropped to the workspace grown by workspace_margin."""
+        return scene_lib.stage2_scene_cloud(self.scene, self.workspace_margin, max_points=self.max_scene_points, voxel=self.voxel)
 
     def to_json(self) -> str:
         return json.dumps(dataclasses.asdict(self), sort_keys=True, default=str)
@@ -129,7 +129,7 @@ def stage2_cloud(points: np.ndarray, config: LabelConfig, labels: np.ndarray | N
 
     points [N, 3] world -> (points [max_scene_points, 3], mask, labels or None); see scene_cloud.
     """
-    return pointcloud.scene_cloud(points, config.max_scene_points, config.voxel, labels, config.scene_bounds, seed)
+    return config.scene_cloud.make(points, labels, seed)
 
 
 _crop = jax.jit(crop_regions, static_argnames=("spec", "n_points"))

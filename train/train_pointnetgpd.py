@@ -1,4 +1,4 @@
-"""Training of the PointNetGPD baseline (`sgjax.pointnetgpd`) on the E-RNet shards.
+"""Training of the PointNetGPD baseline (`sgjax.stage2.pointnetgpd`) on the E-RNet shards.
 
 The same samples as E-RNet (`train.dataset` shards from `train/label.py`), of which PointNetGPD uses
 the enlarged region (cropped here to the closing region of the sample's width) and `label` only. The
@@ -10,7 +10,7 @@ curves.png); the settings are `train.trainer.TrainConfig` with a `PointNetGPDCon
     result = train("shards/", "runs/pointnetgpd", default_config(epochs=100))
 
 or `sgjax train --network pointnetgpd --data shards/ --out runs/pointnetgpd`. Load the result with
-`sgjax.pointnetgpd.load_model(run_dir)`; the benchmark methods `pointnetgpd` and `s1+pointnetgpd`
+`sgjax.stage2.pointnetgpd.load_model(run_dir)`; the benchmark methods `pointnetgpd` and `s1+pointnetgpd`
 take the run directory as their `model`.
 """
 
@@ -22,7 +22,7 @@ from collections.abc import Callable, Mapping
 import numpy as np
 from flax import nnx
 
-from sgjax.pointnetgpd import (
+from sgjax.stage2.pointnetgpd import (
     NETWORK,
     PointNetGPD,
     PointNetGPDConfig,

@@ -37,19 +37,16 @@ import numpy as np
 import optax
 from flax import nnx
 
-from sgjax.ernet import (
-    CHECKPOINT_DIR,
+from sgjax.stage2.checkpoint import CHECKPOINT_DIR, META_ITEM, OPT_STATE_ITEM, PARAMS_ITEM
+from sgjax.stage2.ernet import (
     DEFAULT_SPEC,
-    META_ITEM,
-    OPT_STATE_ITEM,
-    PARAMS_ITEM,
     ERNet,
     ERNetConfig,
     ernet_loss,
     prepare_inputs,
 )
-from sgjax.files import atomic_write, atomic_write_text
-from sgjax.gripper import GripperSpec
+from sgjax.utils.files import atomic_write, atomic_write_text
+from sgjax.geometry.gripper import GripperSpec
 from train import dataset
 
 # ---------------------------------------------------------------------------------------------

@@ -19,8 +19,8 @@ import functools
 import jax
 import jax.numpy as jnp
 
-from sgjax.rotations import rot_z
-from sgjax.superquadric import Superquadric, equivalent_parameterisations, pose_matrix
+from sgjax.geometry.rotations import rot_z
+from sgjax.geometry.superquadric import Superquadric, equivalent_parameterisations, pose_matrix
 
 
 @dataclasses.dataclass(frozen=True)
@@ -55,7 +55,7 @@ class MatchDB:
 
     @classmethod
     def from_db(cls, db, cfg: MatchConfig = MatchConfig()) -> MatchDB:
-        """From a `sgjax.primitive_db.PrimitiveDB`."""
+        """From a `sgjax.stage1.database.PrimitiveDB`."""
         poses, widths, mask = db.padded_grasps()
         scale, eps, valid = parameterisations(jnp.asarray(db.sq_scale), jnp.asarray(db.sq_epsilon), cfg)
         return cls(scale, eps, valid, jnp.asarray(poses), jnp.asarray(widths), jnp.asarray(mask))

@@ -16,7 +16,7 @@ import numpy as np
 import trimesh
 from jax.scipy.special import gammaln
 
-from sgjax.rotations import points_to_frame, proper, rot_z
+from sgjax.geometry.rotations import points_to_frame, proper, rot_z
 
 # Shape exponents are clamped to this range: eps in (0, 2] is convex (paper Sec. II-A), and eps >= 0.1
 # keeps powers like |x|^(2/eps) finite in float32.

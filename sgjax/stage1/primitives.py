@@ -7,7 +7,7 @@ z up:
   * elliptical_cylinder: (2r_x, 2r_y, h);
   * frustum:             (2r_bottom, 2r_top, h)  (bottom at z = -h/2).
 
-Template grasps are gripper poses (gripper frame of `sgjax.gripper`) placed by family-specific rules
+Template grasps are gripper poses (gripper frame of `sgjax.geometry.gripper`) placed by family-specific rules
 that cover the main feasible grasp directions: across opposite faces of a cuboid from each face, across
 the diameter from the side at several heights and angles, across the height from the side, and across
 the diameter from the top or bottom. Each template's width is found as in the paper: close the gripper
@@ -24,7 +24,7 @@ import dataclasses
 import numpy as np
 import trimesh
 
-from sgjax.gripper import GripperSpec, finger_stops
+from sgjax.geometry.gripper import GripperSpec, finger_stops
 
 FAMILIES = ("cuboid", "cylinder", "frustum", "elliptical_cylinder")
 _SECTIONS = 64  # polygon sides of round primitives: < 0.2 mm from the true circle at r = 0.1 m

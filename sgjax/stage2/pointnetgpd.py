@@ -5,9 +5,9 @@ the scene inside the closing region of a grasp candidate, expressed in the grasp
 PointNet (shared per-point MLP, max-pool over the points, MLP head) that classifies the grasp as
 good or bad. Here, as in the SuperGrasp paper's baseline and ablations (Table I):
 
-  crop_closing_regions  world scene -> each candidate's gripper frame -> the points inside its closing
+  crop_closing_regions  (sgjax.stage2.crops) world scene -> each candidate's gripper frame -> the points inside its closing
                         region (|x| <= w/2, |y| <= finger_width/2, 0 <= z <= finger_length;
-                        `sgjax.gripper.points_in_closing_region`), up to `n_points` (PointNetGPD: 500)
+                        `sgjax.geometry.gripper.points_in_closing_region`), up to `n_points` (PointNetGPD: 500)
                         in scene order (shuffle the scene first: `score` does), padded, with a mask.
   prepare_inputs        the same crop from stored enlarged-region samples (`train.dataset`, grasp
                         frame; the closing region is a subset of the enlarged region), with optional
@@ -36,39 +36,29 @@ from __future__ import annotations
 import dataclasses
 import functools
 import os
-from pathlib import Path
 from typing import Any
 
 import jax
 import jax.numpy as jnp
 from flax import nnx
 
-from sgjax import gripper
-from sgjax.ernet import (
-    CHECKPOINT_DIR,
+from sgjax.geometry import gripper
+from sgjax.geometry.gripper import GripperSpec
+from sgjax.stage2 import checkpoint
+from sgjax.stage2.checkpoint import restore_run
+from sgjax.stage2.crops import crop_closing_regions, in_closing_region_local
+from sgjax.stage2.ernet import (
     DEFAULT_SPEC,
-    Region,
     anchor_feature,
-    check_candidates,
     evaluation_loss,
     first_points,
     forward_chunked,
-    in_closing_region_local,
     region_inputs,
-    restore_run,
     scene_candidates,
 )
-from sgjax.gripper import GripperSpec
-from sgjax.pointnet2 import (
-    SharedMLP,
-    first_set_bits,
-    interleave,
-    pack_interleaved,
-)
-from sgjax.rotations import points_to_frame
+from sgjax.stage2.pointnet2 import SharedMLP
 
 NETWORK = "pointnetgpd"  # meta["network"] of a PointNetGPD run directory
-DEFAULT_MODEL_DIR = Path(__file__).resolve().parent / "models" / "pointnetgpd_default"
 TRAIN_COMMAND = "sgjax train --network pointnetgpd --data SHARD_DIR --out RUN_DIR"
 
 
@@ -124,60 +114,6 @@ class PointNetGPDConfig:
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> PointNetGPDConfig:
         return cls(**data)
-
-
-# ---------------------------------------------------------------------------------------------
-# The closing-region crop.
-
-
-def _in_closing_planes(x, y, z, width, spec: GripperSpec):
-    """Gripper-frame coordinate planes (any equal shapes) inside the closing region of `width` (scalar)."""
-    centre, half = gripper.closing_region(spec, width)  # [3] each
-    return (
-        (jnp.abs(x - centre[0]) <= half[0]) & (jnp.abs(y - centre[1]) <= half[1]) & (jnp.abs(z - centre[2]) <= half[2])
-    )
-
-
-def crop_closing_regions(
-    scene: jax.Array,
-    poses: jax.Array,
-    widths: jax.Array,
-    spec: GripperSpec,
-    n_points: int,
-    scene_mask: jax.Array | None = None,
-) -> Region:
-    """Crop each candidate's closing region from a world-frame scene cloud, in its gripper frame.
-
-    scene [N, 3] (world), poses [M, 4, 4] (gripper -> world), widths [M], scene_mask [N] (None: all)
-    -> `sgjax.ernet.Region` with P = n_points: points [M, P, 3] (padding rows 0), mask [M, P], count
-    [M] (points in the region before truncation). Keeps the first n_points region points in scene
-    order; non-finite scene points count as absent. One fused pass over M x N, as `ernet.crop_regions`.
-    """
-    scene = jnp.asarray(scene, jnp.float32)
-    if scene.ndim != 2 or scene.shape[-1] != 3:
-        raise ValueError(f"scene must have shape [N, 3], got {scene.shape}")
-    poses, widths = check_candidates(poses, widths)
-    valid = jnp.all(jnp.isfinite(scene), -1)
-    if scene_mask is not None:
-        scene_mask = jnp.asarray(scene_mask)
-        if scene_mask.shape != scene.shape[:1]:
-            raise ValueError(f"scene_mask must have shape {scene.shape[:1]}, got {scene_mask.shape}")
-        valid = valid & scene_mask.astype(bool)
-    rotation, translation = poses[:, :3, :3], poses[:, :3, 3]
-    planes = interleave(jnp.where(valid[None, :], scene.T, jnp.nan), jnp.nan)  # [3, 32, W]; NaN is never inside
-
-    def region_words(candidate):
-        r, t, w = candidate
-        d = [planes[i] - t[i] for i in range(3)]
-        local = [r[0, i] * d[0] + r[1, i] * d[1] + r[2, i] * d[2] for i in range(3)]  # R^T (p - t)
-        return pack_interleaved(_in_closing_planes(*local, w, spec))
-
-    words = jax.lax.map(region_words, (rotation, translation, widths), batch_size=min(64, len(widths)))
-    index, count = first_set_bits(words, scene.shape[0], n_points)
-    mask = jnp.arange(n_points) < count[:, None]
-    picked = jnp.where(valid[:, None], scene, 0.0)[jnp.minimum(index, scene.shape[0] - 1)]
-    points = points_to_frame(picked, rotation, translation)
-    return Region(jnp.where(mask[..., None], points, 0.0), mask, count)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -330,19 +266,20 @@ def load_model(run_dir: str | os.PathLike, epoch: int | None = None) -> tuple[Po
     return restore_run(run_dir, epoch, abstract_from_meta, missing_hint=f"; train one with `{TRAIN_COMMAND}`")
 
 
-@functools.lru_cache(maxsize=1)
-def _load_default(path: str) -> PointNetGPD:
-    return load_model(path)[0]
-
-
 def load_default_model() -> PointNetGPD:
     """The shipped PointNetGPD checkpoint (`sgjax/models/pointnetgpd_default/`, a run directory).
 
     Raises FileNotFoundError naming the path and the training command when it is missing."""
-    if not (DEFAULT_MODEL_DIR / CHECKPOINT_DIR).is_dir():
-        raise FileNotFoundError(
-            f"no default PointNetGPD checkpoint at {DEFAULT_MODEL_DIR}: train one on the E-RNet shards with "
-            f"`{TRAIN_COMMAND}` and pass it as the method's model (`--model RUN_DIR`), or copy the run directory "
-            f"to {DEFAULT_MODEL_DIR}"
-        )
-    return _load_default(str(DEFAULT_MODEL_DIR))
+    path = checkpoint.POINTNETGPD_DEFAULT_DIR
+    return checkpoint.load_default(
+        path,
+        load_model,
+        f"no default PointNetGPD checkpoint at {path}: train one on the E-RNet shards with "
+        f"`{TRAIN_COMMAND}` and pass it as the method's model (`--model RUN_DIR`), or copy the run directory "
+        f"to {path}",
+    )
+
+
+def as_model(model) -> PointNetGPD:
+    """A PointNetGPD from None (the shipped default), a model, or a run directory."""
+    return checkpoint.as_model(model, PointNetGPD, load_model, load_default_model, "a PointNetGPD, a run directory")

@@ -23,8 +23,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sgjax import pointcloud
-from sgjax.coarse_filter import (
+from sgjax.geometry import pointcloud
+from sgjax.stage1.filters import (
     NO_PLANE,
     FilterConfig,
     coarse_filter,
@@ -32,10 +32,10 @@ from sgjax.coarse_filter import (
     lift_to_plane,
     removal_counts,
 )
-from sgjax.ems import EMSConfig, FitResult, _fit_one
-from sgjax.gripper import GripperSpec, recentre_and_widen, to_gripper_frame
-from sgjax.matching import MatchConfig, MatchDB, match, transfer_grasps
-from sgjax.primitive_db import DBConfig, PrimitiveDB, load_database
+from sgjax.stage1.ems import EMSConfig, FitResult, _fit_one
+from sgjax.geometry.gripper import GripperSpec, recentre_and_widen, to_gripper_frame
+from sgjax.stage1.matching import MatchConfig, MatchDB, match, transfer_grasps
+from sgjax.stage1.database import DBConfig, PrimitiveDB, load_database
 
 
 @dataclasses.dataclass(frozen=True)
@@ -53,7 +53,7 @@ class Stage1Config:
     target_exclusion: float = 0.002  # scene points this close to an object point are the object itself
     # Re-apply the paper's width rule (delta from the surface) to the observed cloud after transfer,
     # re-centring each grasp on it by at most max_recentre: a matched primitive of another size would
-    # otherwise close a finger into the object (`sgjax.gripper.adapt_to_cloud`, `recentre_and_widen`).
+    # otherwise close a finger into the object (`sgjax.geometry.gripper.adapt_to_cloud`, `recentre_and_widen`).
     adapt_width: bool = True
     max_recentre: float = 0.005
     # Objects rest on the support plane, which hides their bottom: with a plane given, EMS also fits the
@@ -64,7 +64,7 @@ class Stage1Config:
     # they leave the obstacle cloud, whose test grows the gripper by `filter.obstacle_margin`.
     table_band: float = 0.005
     # Grasps whose fingers reach into the support plane are backed off along the approach by at most
-    # max_lift to clear it by filter.support_clearance (`sgjax.coarse_filter.lift_to_plane`) rather
+    # max_lift to clear it by filter.support_clearance (`sgjax.stage1.filters.lift_to_plane`) rather
     # than removed by filter (v): on thin lying objects these are the grasps that close low enough.
     max_lift: float = 0.01
 
@@ -73,7 +73,7 @@ class Stage1Config:
 class Candidates:
     """Grasp candidates of one object (NumPy), in match order (best primitive first).
 
-    poses [M, 4, 4] (gripper frame of `sgjax.gripper` -> world), widths [M];
+    poses [M, 4, 4] (gripper frame of `sgjax.geometry.gripper` -> world), widths [M];
     provenance: primitive_id [M] (row in the database), template_id [M] (index among that
     primitive's grasps), match_rank [M] (0..K2-1), match_score [M] (the paper's s);
     points_between [M]: target points between the fingers. `superquadric` is the fitted FitResult,

@@ -3,7 +3,7 @@
 Pipeline for M grasp candidates (pose[M, 4, 4], width[M]) on a scene cloud, all batched, fixed shapes
 (sizes below are the paper config's; the light default uses 512 / 96 points, 64-d features, 128-d anchor):
 
-  crop_regions      scene -> gripper frame of each candidate -> points in the enlarged region
+  crop_regions      (sgjax.stage2.crops) scene -> gripper frame of each candidate -> points in the enlarged region
                     (union of the closing regions of the initial pose and the 3 refined poses:
                     deepen 0.008 m, rotate -15/0/+15 deg), up to P per candidate, with a mask.
   prepare_inputs    (training: Gaussian noise, re-crop) -> shuffle -> the first `n_points` (960) real
@@ -30,29 +30,26 @@ from __future__ import annotations
 import dataclasses
 import functools
 import os
-from collections.abc import Callable
 from typing import Any
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 import optax
 from flax import nnx
 
-from sgjax import gripper
-from sgjax.gripper import GripperSpec
-from sgjax.pointnet2 import (
+from sgjax.geometry import gripper
+from sgjax.geometry.gripper import GripperSpec
+from sgjax.stage2 import checkpoint
+from sgjax.stage2.checkpoint import restore_run
+from sgjax.stage2.crops import check_candidates, crop_regions, in_closing_region_local, in_enlarged_region_local
+from sgjax.stage2.pointnet2 import (
     BackboneConfig,
     PointNet2,
     SetAbstractionConfig,
     SharedMLP,
-    first_set_bits,
     first_true_indices,
     gather,
-    interleave,
-    pack_interleaved,
 )
-from sgjax.rotations import points_to_frame
 
 # ---------------------------------------------------------------------------------------------
 # Configuration.
@@ -188,135 +185,6 @@ def _check_config(config: ERNetConfig, spec: GripperSpec) -> None:
             f"ERNetConfig.n_refinements={config.n_refinements} but the gripper spec has "
             f"{spec.num_refinements} refinement variants"
         )
-
-
-# ---------------------------------------------------------------------------------------------
-# Regions in the gripper frame (the geometry comes from sgjax.gripper; evaluated on x/y/z planes).
-
-
-@functools.cache
-def _region_frames(spec: GripperSpec) -> np.ndarray:
-    """The enlarged region's poses relative to the initial pose: [1 + K, 4, 4] (index 0: identity).
-
-    refined = pose @ T_v, so T_v = enlarged_region_poses(identity)."""
-    with jax.ensure_compile_time_eval():
-        return np.asarray(gripper.enlarged_region_poses(jnp.eye(4), spec), np.float64)
-
-
-def _in_closing_box(x, y, z, width, spec: GripperSpec, frame: np.ndarray | None = None):
-    """Whether gripper-frame points (planes x, y, z [M, N]) lie in the closing region of the pose
-    `frame` (relative to the gripper frame; None: the initial pose) for widths [M]."""
-    centre, half = gripper.closing_region(spec, width)  # [M, 3] each
-    if frame is not None:
-        r, t = frame[:3, :3], frame[:3, 3]
-        d = [c - float(o) if o != 0 else c for c, o in zip((x, y, z), t)]
-        x, y, z = (_dot_constant(r[:, i], d) for i in range(3))
-    return (
-        (jnp.abs(x - centre[:, 0:1]) <= half[:, 0:1])
-        & (jnp.abs(y - centre[:, 1:2]) <= half[:, 1:2])
-        & (jnp.abs(z - centre[:, 2:3]) <= half[:, 2:3])
-    )
-
-
-def _dot_constant(coefficients: np.ndarray, planes: list) -> jax.Array:
-    """sum_j c_j * planes[j] for trace-time constants c, skipping zeros and unit factors (the refined
-    frames are a z shift and a z rotation, so most terms vanish; this runs M x N times per call)."""
-    terms = [p if c == 1.0 else (-p if c == -1.0 else float(c) * p) for c, p in zip(coefficients, planes) if c != 0.0]
-    out = terms[0] if terms else jnp.zeros_like(planes[0])
-    for term in terms[1:]:
-        out = out + term
-    return out
-
-
-def in_closing_region_local(points: jax.Array, width: jax.Array, spec: GripperSpec) -> jax.Array:
-    """Gripper-frame points[M, N, 3], width[M] -> bool[M, N]: inside the initial closing region.
-
-    Equals `gripper.points_in_closing_region(to_world(points, pose), pose, width, spec)`."""
-    x, y, z = points[..., 0], points[..., 1], points[..., 2]
-    return _in_closing_box(x, y, z, jnp.asarray(width, points.dtype), spec)
-
-
-def in_enlarged_region_local(points: jax.Array, width: jax.Array, spec: GripperSpec) -> jax.Array:
-    """Gripper-frame points[M, N, 3], width[M] -> bool[M, N]: inside the enlarged region.
-
-    Equals `gripper.points_in_enlarged_region` evaluated in the world frame."""
-    x, y, z = points[..., 0], points[..., 1], points[..., 2]
-    return _in_enlarged(x, y, z, jnp.asarray(width, points.dtype), spec)
-
-
-def _in_enlarged(x, y, z, width, spec: GripperSpec):
-    inside = _in_closing_box(x, y, z, width, spec)
-    for frame in _region_frames(spec)[1:]:
-        inside = inside | _in_closing_box(x, y, z, width, spec, frame)
-    return inside
-
-
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
-class Region:
-    """Scene points in each candidate's enlarged region, in that candidate's gripper frame.
-
-    points: [M, P, 3] (padding rows are 0); mask: bool[M, P]; count: int32[M], points found in the
-    region before truncation to P (count > P means a uniform random P of them were kept)."""
-
-    points: jax.Array
-    mask: jax.Array
-    count: jax.Array
-
-
-def check_candidates(poses, widths) -> tuple[jax.Array, jax.Array]:
-    poses = jnp.asarray(poses)
-    if poses.ndim != 3 or poses.shape[-2:] != (4, 4):
-        raise ValueError(f"poses must have shape [M, 4, 4], got {poses.shape}")
-    widths = jnp.asarray(widths, poses.dtype if jnp.issubdtype(poses.dtype, jnp.floating) else jnp.float32)
-    if widths.shape != poses.shape[:1]:
-        raise ValueError(f"widths must have shape [M] = {poses.shape[:1]} (one per pose), got {widths.shape}")
-    return poses.astype(jnp.float32), widths.astype(jnp.float32)
-
-
-def crop_regions(
-    scene: jax.Array,
-    poses: jax.Array,
-    widths: jax.Array,
-    spec: GripperSpec,
-    n_points: int,
-    scene_mask: jax.Array | None = None,
-) -> Region:
-    """Crop each candidate's enlarged region from a world-frame scene cloud, in its gripper frame.
-
-    scene[N, 3] (world), poses[M, 4, 4] (gripper -> world), widths[M], scene_mask[N] (None: all)
-    -> Region with P = n_points. Keeps the first n_points region points in scene order, so shuffle
-    the scene first for a uniform sample (`score` does). Non-finite scene points count as absent.
-    Cost is one fused pass over M x N (no [M, N, 3] intermediate).
-    """
-    scene = jnp.asarray(scene, jnp.float32)
-    if scene.ndim != 2 or scene.shape[-1] != 3:
-        raise ValueError(f"scene must have shape [N, 3], got {scene.shape}")
-    poses, widths = check_candidates(poses, widths)
-    valid = jnp.all(jnp.isfinite(scene), -1)
-    if scene_mask is not None:
-        scene_mask = jnp.asarray(scene_mask)
-        if scene_mask.shape != scene.shape[:1]:
-            raise ValueError(f"scene_mask must have shape {scene.shape[:1]}, got {scene_mask.shape}")
-        valid = valid & scene_mask.astype(bool)
-    rotation, translation = poses[:, :3, :3], poses[:, :3, 3]
-    # Absent points become NaN: every comparison with NaN is False, so they are never inside.
-    planes = interleave(jnp.where(valid[None, :], scene.T, jnp.nan), jnp.nan)  # [3, 32, W]
-
-    def region_words(candidate):
-        r, t, w = candidate  # [3, 3], [3], []
-        d = [planes[i] - t[i] for i in range(3)]
-        local = [r[0, i] * d[0] + r[1, i] * d[1] + r[2, i] * d[2] for i in range(3)]  # p_g = R^T (p_w - t)
-        return pack_interleaved(_in_enlarged(*(c[None] for c in local), w[None], spec)[0])
-
-    # lax.map over chunks of candidates: its inputs are materialised, so XLA cannot fuse whatever
-    # computed the poses (a caller's guard, a reduction) into the M x N loop and redo it per point.
-    words = jax.lax.map(region_words, (rotation, translation, widths), batch_size=min(64, len(widths)))
-    index, count = first_set_bits(words, scene.shape[0], n_points)
-    mask = jnp.arange(n_points) < count[:, None]
-    picked = jnp.where(valid[:, None], scene, 0.0)[jnp.minimum(index, scene.shape[0] - 1)]  # [M, P, 3]
-    points = points_to_frame(picked, rotation, translation)
-    return Region(jnp.where(mask[..., None], points, 0.0), mask, count)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -628,47 +496,12 @@ def score(
 
 
 # ---------------------------------------------------------------------------------------------
-# Saved models (the trainer's checkpoint layout; orbax).
-
-CHECKPOINT_DIR = "checkpoints"  # inside a run directory
-PARAMS_ITEM, OPT_STATE_ITEM, META_ITEM = "params", "opt_state", "meta"
+# Saved models (the trainer's run-directory layout: sgjax.stage2.checkpoint).
 
 
 def abstract_model(config: ERNetConfig) -> ERNet:
     """An ERNet with shape-only parameters (no initialisation cost), for restoring checkpoints."""
     return nnx.eval_shape(lambda: ERNet(config, rngs=nnx.Rngs(0)))
-
-
-def restore_run(
-    run_dir: str | os.PathLike,
-    epoch: int | None,
-    abstract_from_meta: Callable[[dict[str, Any]], nnx.Module],
-    missing_hint: str = "",
-) -> tuple[nnx.Module, dict[str, Any]]:
-    """Restore a network from a run directory's orbax checkpoints -> (model, meta).
-
-    Shared by every network the trainer writes (E-RNet, PointNetGPD). epoch: which epoch (None: the
-    latest). `abstract_from_meta(meta)` builds the shape-only model to restore into; it may raise
-    ValueError when meta describes another network. Raises FileNotFoundError (with `missing_hint`)
-    when there is no such checkpoint.
-    """
-    import orbax.checkpoint as ocp
-
-    directory = os.path.abspath(os.path.join(os.fspath(run_dir), CHECKPOINT_DIR))
-    if not os.path.isdir(directory):
-        raise FileNotFoundError(f"no checkpoints in {run_dir} (expected {directory}){missing_hint}")
-    manager = ocp.CheckpointManager(directory, options=ocp.CheckpointManagerOptions(create=False))
-    try:
-        step = manager.latest_step() if epoch is None else epoch
-        if step is None or step not in manager.all_steps():
-            raise FileNotFoundError(f"no checkpoint for epoch {epoch} in {directory} (have {manager.all_steps()})")
-        meta = manager.restore(step, args=ocp.args.Composite(**{META_ITEM: ocp.args.JsonRestore()}))[META_ITEM]
-        graphdef, abstract = nnx.split(abstract_from_meta(meta))
-        target = jax.tree.map(ocp.utils.to_shape_dtype_struct, abstract)
-        restored = manager.restore(step, args=ocp.args.Composite(**{PARAMS_ITEM: ocp.args.StandardRestore(target)}))
-    finally:
-        manager.close()
-    return nnx.merge(graphdef, restored[PARAMS_ITEM]), meta
 
 
 def load_model(run_dir: str | os.PathLike, epoch: int | None = None) -> tuple[ERNet, dict[str, Any]]:
@@ -678,3 +511,22 @@ def load_model(run_dir: str | os.PathLike, epoch: int | None = None) -> tuple[ER
     metric history. Raises FileNotFoundError when the directory holds no checkpoint.
     """
     return restore_run(run_dir, epoch, lambda meta: abstract_model(ERNetConfig.from_dict(meta["model_config"])))
+
+
+def load_default_model() -> ERNet:
+    """The shipped E-RNet checkpoint (`sgjax/models/ernet_default/`, a `sgjax train` run directory).
+
+    Raises FileNotFoundError naming the path and how to make one when it is missing."""
+    path = checkpoint.ERNET_DEFAULT_DIR
+    return checkpoint.load_default(
+        path,
+        load_model,
+        f"no default E-RNet checkpoint at {path}: train one with "
+        "`sgjax train --data DIR --out RUN_DIR` and pass `--model RUN_DIR` (Planner(model=RUN_DIR) in Python), "
+        f"or copy a run directory to {path}",
+    )
+
+
+def as_model(model) -> ERNet:
+    """An ERNet from None (the shipped default), a model, or a `sgjax train` run directory."""
+    return checkpoint.as_model(model, ERNet, load_model, load_default_model, "an ERNet, a `sgjax train` run directory")

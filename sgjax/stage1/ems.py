@@ -26,9 +26,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sgjax import pointcloud
-from sgjax.rotations import proper, rot_z, so3_exp
-from sgjax.superquadric import (
+from sgjax.geometry import pointcloud
+from sgjax.geometry.rotations import proper, rot_z, so3_exp
+from sgjax.geometry.superquadric import (
     EPS_MAX,
     EPS_MIN,
     Superquadric,
@@ -544,8 +544,8 @@ def fit_superquadrics(points, mask=None, config: EMSConfig = EMSConfig(), viewpo
 
     points: [B, N, 3] (metres), mask: [B, N] bool marking real points (default: all). Clouds that cannot
     be fitted (too few points, NaN/inf, identical, collinear or coplanar points) come back with
-    valid=False and a status code (`sgjax.pointcloud.describe_status`); the others are fitted normally.
-    Use `sgjax.pointcloud.pad_clouds` to batch clouds of different sizes; calls with the same (B, N)
+    valid=False and a status code (`sgjax.geometry.pointcloud.describe_status`); the others are fitted normally.
+    Use `sgjax.geometry.pointcloud.pad_clouds` to batch clouds of different sizes; calls with the same (B, N)
     reuse one compilation. Works under an outer jit/vmap too.
 
     viewpoints: None, [3] or [B, 3], the camera position of single-view clouds in the points' frame.

@@ -1,7 +1,7 @@
-"""The `sgjax` command: one entry point, one subcommand per job.
+"""The `sgjax` command's subcommands: one entry point (`main`), one subcommand per job.
 
-This module sits at the top of the house: it may import `envs`, `train` and `eval` lazily inside a
-subcommand, while the library modules below it never import upward.
+This package sits at the top of the house: it may import `envs`, `train` and `eval` (lazily, inside a
+subcommand, so that `sgjax --help` stays fast), while the layers below it never import upward.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import os
 import sys
 from typing import Sequence
 
-from sgjax.files import atomic_write
+from sgjax.utils.files import atomic_write
 
 # envs.trial.BACKENDS, spelled out here so that the CLI imports no simulator before a command runs.
 BACKEND_HELP = ("grasp trial engine: cpu (default; MuJoCo's C engine), mjx (MJX: its warp implementation on a GPU "
@@ -34,9 +34,9 @@ def _fail(message: str, code: int = 2) -> int:
 def _cmd_example(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from sgjax import synthetic
-    from sgjax.rotations import random_rotation
-    from sgjax.superquadric import Superquadric
+    from sgjax.geometry import synthetic
+    from sgjax.geometry.rotations import random_rotation
+    from sgjax.geometry.superquadric import Superquadric
 
     import jax
 
@@ -58,8 +58,9 @@ def _cmd_example(args: argparse.Namespace) -> int:
 def _cmd_fit(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from sgjax import ems, pointcloud
-    from sgjax.superquadric import to_mesh
+    from sgjax.stage1 import ems
+    from sgjax.geometry import pointcloud
+    from sgjax.geometry.superquadric import to_mesh
 
     clouds, names, code = [], [], 0
     for path in args.files:
@@ -157,12 +158,12 @@ def _cmd_objects_list(args: argparse.Namespace) -> int:
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
-    from sgjax.ernet import ERNetConfig
+    from sgjax.stage2.ernet import ERNetConfig
     from train import dataset, trainer
 
     network, run = ERNetConfig, trainer.train
     if args.network == "pointnetgpd":  # the baseline, on the same shards (train/train_pointnetgpd.py)
-        from sgjax.pointnetgpd import PointNetGPDConfig
+        from sgjax.stage2.pointnetgpd import PointNetGPDConfig
         from train import train_pointnetgpd
 
         network, run = PointNetGPDConfig, train_pointnetgpd.train
@@ -195,8 +196,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
 
 def _cmd_label(args: argparse.Namespace) -> int:
-    from sgjax.primitive_db import DBConfig, load_database
-    from sgjax.stage1 import Stage1
+    from sgjax.stage1.database import DBConfig, load_database
+    from sgjax.stage1.pipeline import Stage1
     from train import label
 
     try:
@@ -219,7 +220,7 @@ def _cmd_label(args: argparse.Namespace) -> int:
 
 
 def _cmd_build_db(args: argparse.Namespace) -> int:
-    from sgjax.primitive_db import DBConfig, build_database, default_path, load_database_file, save_database
+    from sgjax.stage1.database import DBConfig, build_database, default_path, load_database_file, save_database
 
     cfg = DBConfig.small() if args.small else DBConfig()
     path = args.out or default_path(cfg)
@@ -237,9 +238,9 @@ def _cmd_build_db(args: argparse.Namespace) -> int:
 def _cmd_candidates(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from sgjax.pointcloud import CloudError, load_cloud
-    from sgjax.primitive_db import DBConfig, load_database, load_database_file
-    from sgjax.stage1 import Stage1
+    from sgjax.geometry.pointcloud import CloudError, load_cloud
+    from sgjax.stage1.database import DBConfig, load_database, load_database_file
+    from sgjax.stage1.pipeline import Stage1
 
     try:
         cloud = load_cloud(args.cloud)
@@ -274,8 +275,8 @@ def _cmd_candidates(args: argparse.Namespace) -> int:
 def _cmd_plan(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from sgjax.pointcloud import CloudError, load_cloud
-    from sgjax.primitive_db import DBConfig, load_database, load_database_file
+    from sgjax.geometry.pointcloud import CloudError, load_cloud
+    from sgjax.stage1.database import DBConfig, load_database, load_database_file
 
     try:
         cloud = load_cloud(args.cloud)
@@ -526,6 +527,3 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     return args.func(args)
 
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -1,10 +1,10 @@
 """The primitive database: ~1.2k standard primitives, their superquadrics and template grasps.
 
 Paper Sec. IV-B: primitives of four families over a grid of shapes and proportional scalings, each
-with family-specific template grasps (`sgjax.primitives`) and superquadric coefficients fitted with our
+with family-specific template grasps (`sgjax.stage1.primitives`) and superquadric coefficients fitted with our
 EMS on full surface samples. Grasps are stored in each primitive's canonical superquadric frame and
-closed under that frame's flips (`sgjax.primitives.symmetrize`), so transferring them to a query is
-one matrix product (`sgjax.matching.transfer_grasps`).
+closed under that frame's flips (`sgjax.stage1.primitives.symmetrize`), so transferring them to a query is
+one matrix product (`sgjax.stage1.matching.transfer_grasps`).
 
 The database is one versioned `.npz` file in the cache directory (`$SGJAX_CACHE/primitive_db/`),
 named by the format version and a hash of the build configuration; building is deterministic.
@@ -21,10 +21,10 @@ from pathlib import Path
 
 import numpy as np
 
-from sgjax.cache import cache_dir
-from sgjax.files import atomic_write
-from sgjax.gripper import GripperSpec
-from sgjax.primitives import (
+from sgjax.utils.cache import cache_dir
+from sgjax.utils.files import atomic_write
+from sgjax.geometry.gripper import GripperSpec
+from sgjax.stage1.primitives import (
     FAMILIES,
     Primitive,
     TemplateConfig,
@@ -32,7 +32,7 @@ from sgjax.primitives import (
     symmetrize,
     template_grasps,
 )
-from sgjax.superquadric import pose_matrix
+from sgjax.geometry.superquadric import pose_matrix
 
 FORMAT_VERSION = 1  # the file layout
 BUILD_VERSION = 1  # bump when template placement or fitting changes: old cached files are then not reused
@@ -113,7 +113,7 @@ def _diameter_height(longest: float, aspect: float) -> tuple[float, float]:
 class PrimitiveDB:
     """The database in host memory. P primitives, G grasps in all.
 
-    family: [P] int index into FAMILIES;  dims: [P, 3] (see `sgjax.primitives`);
+    family: [P] int index into FAMILIES;  dims: [P, 3] (see `sgjax.stage1.primitives`);
     sq_scale [P, 3], sq_epsilon [P, 2], sq_rotation [P, 3, 3], sq_translation [P, 3]: the canonical EMS
     fit in the primitive's own frame (T_sq^c);  fit_inlier_ratio [P];
     grasp_offsets [P + 1]: primitive i owns grasps[grasp_offsets[i]:grasp_offsets[i + 1]];
@@ -220,7 +220,7 @@ def _fit_primitives(shapes: list[Primitive], cfg: DBConfig, progress: bool):
     import jax
     from tqdm import tqdm
 
-    from sgjax.ems import fit_superquadrics
+    from sgjax.stage1.ems import fit_superquadrics
 
     clouds = np.stack([surface_points(p, cfg.fit_points, seed=cfg.seed + 100_000 + i) for i, p in enumerate(shapes)])
     chunk = min(256, len(shapes))  # one compiled batch size; the last chunk is padded with copies

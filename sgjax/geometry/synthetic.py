@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from sgjax.superquadric import Superquadric, sample_surface
+from sgjax.geometry.superquadric import Superquadric, sample_surface
 
 
 def random_superquadric(

@@ -245,3 +245,12 @@ def scene_cloud(
     out_labels = np.full(max_points, -1, np.int32)
     out_labels[: len(points)] = kept_labels
     return out, mask, out_labels
+
+
+def table_plane(points: np.ndarray, labels: np.ndarray) -> tuple[float, float, float, float] | None:
+    """The table as (0, 0, 1, -z) with z the median height of the table points (labels < 0), or None."""
+    table = np.asarray(labels) < 0
+    if not table.any():
+        return None
+    z = float(np.median(np.asarray(points)[table, 2]))
+    return (0.0, 0.0, 1.0, -z)

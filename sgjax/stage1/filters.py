@@ -35,8 +35,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sgjax.gripper import GripperSpec, local_regions, lowest_height, segment_regions, to_gripper_frame
-from sgjax.superquadric import Superquadric, log_implicit_local
+from sgjax.geometry.gripper import GripperSpec, local_regions, lowest_height, segment_regions, to_gripper_frame
+from sgjax.geometry.superquadric import Superquadric, log_implicit_local
 
 REASONS = ("collision_object", "too_few_points", "normal_angle", "collision_scene", "below_support")
 NO_PLANE = (0.0, 0.0, 0.0, 1.0)  # a "plane" every point is above
@@ -215,7 +215,7 @@ def coarse_filter(
     superquadric: the object's fitted superquadric (unbatched) for hidden_contacts="superquadric"; without
     it nothing can judge a grasp whose contacts are all hidden, and such grasps are removed (as "reject").
     viewpoint [3]: the camera that saw the scene; with cfg.shadow_depth > 0, (iv) also tests the space
-    each obstacle point hides (`sgjax.gripper.segment_regions`).
+    each obstacle point hides (`sgjax.geometry.gripper.segment_regions`).
     """
     hidden_cos = None
     if cfg.hidden_contacts == "superquadric" and superquadric is not None:

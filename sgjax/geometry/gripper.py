@@ -30,7 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sgjax.rotations import points_from_frame, points_to_frame, rot_z
+from sgjax.geometry.rotations import points_from_frame, points_to_frame, rot_z
 
 
 @dataclasses.dataclass(frozen=True)
@@ -309,20 +309,45 @@ def local_regions(
     over the last `sweep` metres (the closing region is not swept).
     """
     local = _points(local, "local")
-    half_w = 0.5 * jnp.asarray(width, local.dtype)[..., None]
-    x, y, z = jnp.abs(local[..., 0]), jnp.abs(local[..., 1]), local[..., 2]
-    in_y = y <= 0.5 * spec.finger_width
-    in_z = (z >= 0.0) & (z <= spec.finger_length)
-    closing = (x <= half_w) & in_y & in_z
-    finger = (
-        (jnp.abs(x - half_w - 0.5 * spec.finger_thickness) <= 0.5 * spec.finger_thickness + margin)
-        & (y <= 0.5 * spec.finger_width + margin)
-        & (z >= -margin - sweep)
-        & (z <= spec.finger_length + margin)
-    )
+    xyz = (local[..., 0], local[..., 1], local[..., 2])
+    width = jnp.asarray(width, local.dtype)[..., None]
+    closing = in_box(*xyz, closing_box(spec, width))
+    right, left, palm = hand_boxes(spec, width, margin, sweep)
+    return closing, in_box(*xyz, right) | in_box(*xyz, left) | in_box(*xyz, palm)
+
+
+# One description of the gripper's regions: axis-aligned boxes in the gripper frame, (lo, hi) per axis,
+# each bound a number or an array that broadcasts with the coordinates. Every region test builds its
+# bounds here, so that a point on a face is inside or outside for all of them alike.
+AxisBox = tuple[tuple, tuple]
+
+
+def closing_box(spec: GripperSpec, width) -> AxisBox:
+    """The closing region of `width`: |x| <= w/2, |y| <= finger_width/2, 0 <= z <= finger_length."""
+    half_w = 0.5 * width
+    fy = 0.5 * spec.finger_width
+    return (-half_w, -fy, 0.0), (half_w, fy, spec.finger_length)
+
+
+def hand_boxes(spec: GripperSpec, width, margin: float = 0.0, sweep: float = 0.0) -> tuple[AxisBox, AxisBox, AxisBox]:
+    """The right finger (+x), left finger (-x) and palm of the hand open to `width`, grown by `margin`
+    and swept back by `sweep` along -z (the straight approach's last `sweep` metres)."""
+    half_w = 0.5 * width
+    fy = 0.5 * spec.finger_width
+    fx0, fx1 = half_w - margin, half_w + spec.finger_thickness + margin
+    fz0, fz1 = -margin - sweep, spec.finger_length + margin
+    right = (fx0, -fy - margin, fz0), (fx1, fy + margin, fz1)
+    left = (-fx1, -fy - margin, fz0), (-fx0, fy + margin, fz1)
     px, py = (0.5 * s + margin for s in spec.palm_size[:2])
-    palm = (x <= px) & (y <= py) & (z >= -spec.palm_size[2] - margin - sweep) & (z <= margin)
-    return closing, finger | palm
+    palm = (-px, -py, -spec.palm_size[2] - margin - sweep), (px, py, margin)
+    return right, left, palm
+
+
+def in_box(x: jax.Array, y: jax.Array, z: jax.Array, box: AxisBox) -> jax.Array:
+    """The one point-in-region test: gripper-frame coordinates x, y, z (equal or broadcasting shapes)
+    inside the closed box (lo, hi) -> bool. NaN coordinates are never inside."""
+    lo, hi = box
+    return (x >= lo[0]) & (x <= hi[0]) & (y >= lo[1]) & (y <= hi[1]) & (z >= lo[2]) & (z <= hi[2])
 
 
 def _segments_hit_box(start, inv_direction, length, lo, hi) -> jax.Array:
@@ -363,17 +388,10 @@ def segment_regions(
     # whole line inside (start within the slab) or nowhere (start outside it).
     tiny = 1e-12
     inv = [1.0 / jnp.where(jnp.abs(d) < tiny, jnp.where(d < 0, -tiny, tiny), d) for d in (direction[..., a] for a in range(3))]
-    hit = lambda lo, hi: _segments_hit_box(start, inv, length, lo, hi)
-    half_w = 0.5 * jnp.asarray(width, local.dtype)[..., None]  # [..., 1]
-    fy = 0.5 * spec.finger_width
-    closing = hit((-half_w, -fy, 0.0), (half_w, fy, spec.finger_length))
-    fx0, fx1 = half_w - margin, half_w + spec.finger_thickness + margin
-    fz0, fz1 = -margin - sweep, spec.finger_length + margin
-    right = hit((fx0, -fy - margin, fz0), (fx1, fy + margin, fz1))
-    left = hit((-fx1, -fy - margin, fz0), (-fx0, fy + margin, fz1))
-    px, py = (0.5 * s + margin for s in spec.palm_size[:2])
-    palm = hit((-px, -py, -spec.palm_size[2] - margin - sweep), (px, py, margin))
-    return closing, left | right | palm
+    hit = lambda box: _segments_hit_box(start, inv, length, *box)
+    width = jnp.asarray(width, local.dtype)[..., None]  # [..., 1]
+    right, left, palm = hand_boxes(spec, width, margin, sweep)
+    return hit(closing_box(spec, width)), hit(left) | hit(right) | hit(palm)
 
 
 def finger_stops(local, spec: GripperSpec, valid=None, xp=jnp):
@@ -482,8 +500,10 @@ def points_in_closing_region(
 
     Batch axes broadcast, e.g. one cloud [N, 3] against B grasps gives bool[B, N].
     """
-    points = _points(points)
-    return points_in_box(points, closing_region_box(pose, width, spec))
+    points, pose = _points(points), _pose(pose)
+    local = to_gripper_frame(points, pose)
+    width = _width(width, pose).astype(local.dtype)[..., None]
+    return in_box(local[..., 0], local[..., 1], local[..., 2], closing_box(spec, width))
 
 
 def points_in_enlarged_region(
@@ -495,8 +515,8 @@ def points_in_enlarged_region(
     """
     points, pose = _points(points), _pose(pose)
     width = _width(width, pose)
-    boxes = closing_region_box(enlarged_region_poses(pose, spec), width[..., None], spec)
-    return jnp.any(points_in_box(points[..., None, :, :], boxes), axis=-2)
+    inside = points_in_closing_region(points[..., None, :, :], enlarged_region_poses(pose, spec), width[..., None], spec)
+    return jnp.any(inside, axis=-2)
 
 
 def collides_with_points(

@@ -1,0 +1,7 @@
+"""`python -m sgjax_cli ...`: the same as the `sgjax` command."""
+
+import sys
+
+from sgjax_cli import main
+
+sys.exit(main())
