@@ -153,6 +153,18 @@ def test_large_mesh_is_simplified(tmp_path):
     assert visual.volume == pytest.approx(sphere.volume, rel=0.01)
 
 
+def test_decimation_never_opens_a_closed_mesh():
+    """The YCB knife's blade is a thin closed sheet: quadric decimation to 3000 faces pinches it (edges
+    shared by more than two faces), so the preparation keeps the closed full mesh instead."""
+    knife = next(s for s in objects.ycb_meshes() if s.name == "ycb/032_knife")
+    mesh = meshprep.clean_mesh(meshprep.load_mesh(knife.path))
+    assert mesh.is_watertight and len(mesh.faces) > 3000
+    raw = mesh.simplify_quadric_decimation(face_count=3000)
+    assert not trimesh.Trimesh(raw.vertices, raw.faces, process=True).is_watertight
+    out = meshprep.simplify_mesh(mesh, 3000)
+    assert out.is_watertight and len(out.faces) == len(mesh.faces)
+
+
 @pytest.mark.parametrize(
     "content, reason",
     [
