@@ -64,7 +64,8 @@ def resolve_objects(setting: declutter.Setting, objects: str | None = None, prog
     from envs.objects import OBJECT_SETS, load_object_set_report, object_set_identity
 
     name = setting.object_set if objects is None else objects
-    report = load_object_set_report(name, progress=progress)
+    # One process per core: preparing meshes (CoACD) is most of a first run's cache fill.
+    report = load_object_set_report(name, progress=progress, workers=os.cpu_count() or 1)
     if not report.assets:
         raise ValueError(f"object set {name!r} has no usable object (see `sgjax objects prepare`)")
     label = name if name in OBJECT_SETS else Path(os.path.expanduser(name)).resolve().name or "user"

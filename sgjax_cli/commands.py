@@ -220,7 +220,14 @@ def _cmd_label(args: argparse.Namespace) -> int:
 
 
 def _cmd_build_db(args: argparse.Namespace) -> int:
-    from sgjax.stage1.database import DBConfig, build_database, default_path, load_database_file, save_database
+    from sgjax.stage1.database import (
+        DBConfig,
+        build_database,
+        default_path,
+        load_database_file,
+        save_database,
+        ship_database,
+    )
 
     cfg = DBConfig.small() if args.small else DBConfig()
     path = args.out or default_path(cfg)
@@ -231,6 +238,10 @@ def _cmd_build_db(args: argparse.Namespace) -> int:
         db = build_database(cfg, workers=args.workers)
         save_database(db, path)
         print(f"wrote {path}")
+    if args.ship:  # refresh the copy that ships with the package (developers, after a BUILD_VERSION bump)
+        if args.small:
+            return _fail("--ship: only the default database ships")
+        print(f"wrote {ship_database(db, cfg)}")
     print(json.dumps(db.summary()))
     return 0
 
@@ -402,6 +413,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", help="write here instead of the cache directory ($SGJAX_CACHE)")
     p.add_argument("--workers", type=int, default=None, help="threads placing templates (default: cores)")
     p.add_argument("--force", action="store_true", help="rebuild even if the file exists")
+    p.add_argument("--ship", action="store_true",
+                   help="also write it compressed into the package (sgjax/models/primitive_db), the copy new users load")
     p.set_defaults(func=_cmd_build_db)
 
     p = sub.add_parser("candidates", help="Stage-1 grasp candidates for one object cloud")

@@ -162,3 +162,19 @@ def test_small_db_fits_match_primitive_sizes(small_db):
     assert good >= 0.9 * total
     counts = small_db.num_grasps
     assert counts.min() >= 20 and counts.max() <= 400
+
+
+def test_the_default_database_ships_and_loads_without_a_build(tmp_path, monkeypatch):
+    """The package carries the default database for the current DBConfig / BUILD_VERSION (a change to
+    either needs `sgjax build-db --force --ship`), and an empty cache loads it without building."""
+    from sgjax.stage1 import database
+
+    shipped = database.shipped_path(DBConfig())
+    assert shipped.is_file(), "refresh the shipped database: sgjax build-db --force --ship"
+    assert sorted(p.name for p in database.SHIPPED_DIR.glob("*.npz")) == [shipped.name]  # no stale copies
+    monkeypatch.setenv("SGJAX_CACHE", str(tmp_path / "empty"))
+    db = database.load_database(build=False)
+    assert db.config_key == DBConfig().key() and not database.default_path().exists()
+    assert len(db) > 1000 and np.all(np.isfinite(db.grasps)) and db.grasp_offsets[-1] == len(db.grasps)
+    spec = GripperSpec()
+    assert np.all((db.widths > 0) & (db.widths <= spec.max_opening))

@@ -268,7 +268,7 @@ def label(
     from envs.objects import load_object_set, object_set_identity
 
     if objects is None:  # a named set that lost a member raises ObjectSetError naming it
-        objects = load_object_set(config.object_set, progress=progress)
+        objects = load_object_set(config.object_set, progress=progress, workers=os.cpu_count() or 1)
     if not objects:
         raise ValueError(f"object set {config.object_set!r} is empty")
     identity = object_set_identity(config.object_set, objects)

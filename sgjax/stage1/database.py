@@ -299,7 +299,7 @@ _ARRAYS = [f.name for f in dataclasses.fields(PrimitiveDB) if f.name not in ("co
 
 def default_path(cfg: DBConfig = DBConfig()) -> Path:
     """Where the database for `cfg` lives in the cache directory."""
-    return cache_dir("primitive_db") / f"primitive_db-v{FORMAT_VERSION}-{cfg.key()}.npz"
+    return cache_dir("primitive_db") / _file_name(cfg)
 
 
 def save_database(db: PrimitiveDB, path: str | os.PathLike) -> None:
@@ -334,11 +334,47 @@ def load_database_file(path: str | os.PathLike) -> PrimitiveDB:
     return PrimitiveDB(**arrays, config_key=meta["config_key"], config_json=meta["config"])
 
 
+# The default database ships with the package (3.7 MB compressed; building it takes ~3 min on 2 cores),
+# so a new user's first run does not wait for it. Its name carries the config key, which hashes
+# FORMAT_VERSION, BUILD_VERSION and DBConfig: any change to them makes the shipped file not match, and
+# the database is built into the cache as before. Refresh it with `sgjax build-db --ship`.
+SHIPPED_DIR = Path(__file__).resolve().parent.parent / "models" / "primitive_db"
+
+
+def shipped_path(cfg: DBConfig = DBConfig()) -> Path:
+    """Where a shipped copy of the database for `cfg` would be (only the default config ships)."""
+    return SHIPPED_DIR / _file_name(cfg)
+
+
+def _file_name(cfg: DBConfig) -> str:
+    return f"primitive_db-v{FORMAT_VERSION}-{cfg.key()}.npz"
+
+
+def ship_database(db: PrimitiveDB, cfg: DBConfig = DBConfig()) -> Path:
+    """Write `db` (built for `cfg`) compressed into the package's shipped folder, replacing older ones."""
+    if db.config_key != cfg.key():
+        raise ValueError(f"database was built for config {db.config_key}, not {cfg.key()}")
+    SHIPPED_DIR.mkdir(parents=True, exist_ok=True)
+    path = shipped_path(cfg)
+    for old in SHIPPED_DIR.glob("primitive_db-*.npz"):
+        if old != path:
+            old.unlink()
+    arrays = {name: getattr(db, name) for name in _ARRAYS}
+    meta = np.asarray(json.dumps({"version": FORMAT_VERSION, "config_key": db.config_key, "config": db.config_json}))
+    atomic_write(path, lambda tmp: np.savez_compressed(tmp, meta=meta, **arrays))
+    return path
+
+
 def load_database(
     cfg: DBConfig = DBConfig(), path: str | os.PathLike | None = None, build: bool = True, progress: bool = True
 ) -> PrimitiveDB:
-    """The database for `cfg` from the cache (or `path`), built and saved first if missing and `build`."""
-    path = Path(path) if path is not None else default_path(cfg)
+    """The database for `cfg`: from `path`, else the cache, else the copy shipped with the package (the
+    default config), else built and saved into the cache first (if `build`)."""
+    if path is None:
+        path = default_path(cfg)
+        if not path.is_file() and shipped_path(cfg).is_file():
+            return load_database_file(shipped_path(cfg))
+    path = Path(path)
     if not path.is_file() and build:
         save_database(build_database(cfg, progress=progress), path)
     return load_database_file(path)
