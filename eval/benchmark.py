@@ -92,7 +92,9 @@ def run_key(method: str, options: dict, n_objects: int, assets: Sequence, config
             method_config: object = None) -> dict:
     """What must match for a resumed scene log to belong to this run. method_config: the method's own
     settings (its `config`, defaults included), so that changed defaults do not resume older logs."""
-    objects = hashlib.sha1("\n".join(sorted(a.name for a in assets)).encode()).hexdigest()[:12]
+    from envs.objects import object_set_identity
+
+    objects = object_set_identity("", assets)["hash"]  # the same names hash the tables show
     # nthread changes speed, not results.
     relevant = dataclasses.replace(config, nthread=0)
     return {

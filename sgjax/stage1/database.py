@@ -302,11 +302,13 @@ def default_path(cfg: DBConfig = DBConfig()) -> Path:
     return cache_dir("primitive_db") / _file_name(cfg)
 
 
-def save_database(db: PrimitiveDB, path: str | os.PathLike) -> None:
-    """Write the database atomically as one .npz (with its format version and config)."""
+def save_database(db: PrimitiveDB, path: str | os.PathLike, compressed: bool = False) -> None:
+    """Write the database atomically as one .npz (with its format version and config); `compressed`
+    for the copy that ships with the package."""
     arrays = {name: getattr(db, name) for name in _ARRAYS}
     meta = np.asarray(json.dumps({"version": FORMAT_VERSION, "config_key": db.config_key, "config": db.config_json}))
-    atomic_write(path, lambda tmp: np.savez(tmp, meta=meta, **arrays))
+    write = np.savez_compressed if compressed else np.savez
+    atomic_write(path, lambda tmp: write(tmp, meta=meta, **arrays))
 
 
 class _Outdated(ValueError):
@@ -359,9 +361,7 @@ def ship_database(db: PrimitiveDB, cfg: DBConfig = DBConfig()) -> Path:
     for old in SHIPPED_DIR.glob("primitive_db-*.npz"):
         if old != path:
             old.unlink()
-    arrays = {name: getattr(db, name) for name in _ARRAYS}
-    meta = np.asarray(json.dumps({"version": FORMAT_VERSION, "config_key": db.config_key, "config": db.config_json}))
-    atomic_write(path, lambda tmp: np.savez_compressed(tmp, meta=meta, **arrays))
+    save_database(db, path, compressed=True)
     return path
 
 
