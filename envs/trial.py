@@ -116,7 +116,10 @@ def run_grasp_with_refinements(
     """
     spec = scene.gripper if spec is None else spec
     poses, widths = check_grasps(poses, widths, spec)
-    variants = np.asarray(enlarged_region_poses(poses, spec), np.float64)  # [M, 1 + K, 4, 4]
+    # Padded to a power of two: the jitted variants compile once per size class, not once per M.
+    padded = np.tile(np.eye(4), (1 << max(len(poses) - 1, 0).bit_length(), 1, 1))
+    padded[: len(poses)] = poses
+    variants = np.asarray(enlarged_region_poses(padded, spec), np.float64)[: len(poses)]  # [M, 1 + K, 4, 4]
     k = variants.shape[1]
     # float32 JAX math leaves rotations orthonormal to ~1e-7: re-orthonormalise before the checks.
     u, _, vt = np.linalg.svd(variants[..., :3, :3])

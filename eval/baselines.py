@@ -1,6 +1,6 @@
 """The paper's PointNetGPD baseline and its two ablations (Table I) as benchmark methods.
 
-  pointnetgpd      GPD-style geometric candidates (eval/gpd_sampler.py: antipodal sampling, the deepest
+  pointnetgpd      GPD-style geometric candidates (sgjax/samplers/gpd.py: antipodal sampling, the deepest
                    collision-free placement, centring and width, re-checked; its antipodal ranking is
                    not used) scored by the PointNetGPD evaluator (sgjax/stage2/pointnetgpd.py); the best-scored
                    candidate is executed (PointNetGPD executes its best grasp; no threshold).
@@ -38,7 +38,7 @@ import jax
 import numpy as np
 from flax import nnx
 
-from eval import gpd_sampler
+from sgjax.samplers import gpd as gpd_sampler
 from eval.protocol import Decision, near_grasps
 from sgjax.geometry import gripper, pointcloud
 from sgjax import planner
@@ -131,7 +131,7 @@ def without_avoided(cands: CandidateSet, avoid, spec: GripperSpec) -> CandidateS
 
 
 def gpd_candidates(points, labels, viewpoint, seed: int, config: BaselineConfig) -> CandidateSet:
-    """The GPD-style generator (eval/gpd_sampler.py stages 1 and 2) -> its kept candidates, padded.
+    """The GPD-style generator (sgjax/samplers/gpd.py stages 1 and 2) -> its kept candidates, padded.
 
     A seeded uniform subset of them when there are more than `max_candidates`."""
     cfg, slots = config.gpd, config.max_candidates

@@ -1,5 +1,5 @@
 """The GPD-style geometric baseline (no learning) as a benchmark method: the candidates of
-`eval.gpd_sampler` (antipodal sampling on the scene cloud, then geometric evaluation), ranked by
+`sgjax.samplers.gpd` (antipodal sampling on the scene cloud, then geometric evaluation), ranked by
 their antipodal score instead of a learned classifier (in the spirit of GPD, ten Pas et al., IJRR 2017).
 """
 
@@ -10,7 +10,7 @@ import time
 import jax
 import numpy as np
 
-from eval.gpd_sampler import GPDConfig, candidates, evaluate, prepare_cloud
+from sgjax.samplers.gpd import GPDConfig, candidates, evaluate, prepare_cloud
 from eval.protocol import Decision, near_grasps
 
 

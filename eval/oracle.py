@@ -19,7 +19,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from envs import simple_grasps
-from eval.gpd_sampler import swept_hits, voxel_downsample
+from sgjax.samplers.gpd import swept_hits, voxel_downsample
 from eval.protocol import Decision, near_grasps
 
 

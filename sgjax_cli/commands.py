@@ -195,14 +195,30 @@ def _cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
+def _per_source(text: str) -> tuple[tuple[str, int], ...]:
+    """"stage1=8,gpd=4" -> (("stage1", 8), ("gpd", 4)); ValueError names a malformed item."""
+    out = []
+    for item in text.split(","):
+        name, _, count = item.partition("=")
+        if not count.strip().isdigit():
+            raise ValueError(f"--per-source: {item!r} is not SOURCE=COUNT (e.g. stage1=8,gpd=8)")
+        out.append((name.strip(), int(count)))
+    return tuple(out)
+
+
 def _cmd_label(args: argparse.Namespace) -> int:
     from sgjax.stage1.database import DBConfig, load_database
     from sgjax.stage1.pipeline import Stage1
     from train import label
 
     try:
+        extra = {}
+        if args.per_source is not None:
+            extra["per_source"] = _per_source(args.per_source)
+        if args.held_out_objects is not None:
+            extra["held_out_objects"] = () if args.held_out_objects in ("", "none") else tuple(args.held_out_objects.split(","))
         config = label.LabelConfig(
-            n_objects=args.n_objects, grasps_per_scene=args.grasps_per_scene, object_set=args.objects, seed=args.seed
+            n_objects=args.n_objects, targets_per_scene=args.targets_per_scene, object_set=args.objects, seed=args.seed, **extra
         )
         stage1 = Stage1(load_database(DBConfig.small()), config.stage1) if args.small_db else None
         summary = label.label(
@@ -497,7 +513,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--objects", default="seen", help="object set name or a folder of meshes (default: seen)")
     p.add_argument("--backend", default="cpu", help=BACKEND_HELP)
     p.add_argument("--n-objects", type=int, default=5, help="objects per scene (paper: 5)")
-    p.add_argument("--grasps-per-scene", type=int, default=16, help="candidates executed per scene (+3 refinements each)")
+    p.add_argument("--targets-per-scene", type=int, default=2, help="objects whose grasps are executed per scene")
+    p.add_argument(
+        "--per-source", default=None, metavar="SOURCE=N,...",
+        help="grasps per target from each candidate source (default stage1=8,stage1_paper=8,gpd=8,perturbed=8; "
+        "each executed with its 3 refinements)",
+    )
+    p.add_argument(
+        "--held-out-objects", default=None, metavar="NAME,...",
+        help="objects never trained on, only in every 20th scene (default: 4 seen objects; 'none' for none)",
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--small-db", action="store_true", help="the small primitive database (tests, quick runs)")
     p.add_argument("--threads", type=int, default=0, help="simulation threads (default: all cores)")

@@ -26,7 +26,7 @@ from eval.declutter import (
     make_benchmark_scene,
     run_scene,
 )
-from eval.gpd_sampler import GPDConfig
+from sgjax.samplers.gpd import GPDConfig
 from eval.methods import METHODS, MethodUnavailable, make_method, method_names
 from sgjax.stage2 import crops, ernet
 from sgjax.geometry import gripper, pointcloud

@@ -271,7 +271,7 @@ def test_benchmark_resumes_and_writes_tables_and_pictures(tmp_path, objects):
 
 def test_resume_key_covers_the_methods_own_settings(objects):
     """A method's changed settings (its defaults included) must not resume logs written under the old ones."""
-    from eval.gpd_sampler import GPDConfig
+    from sgjax.samplers.gpd import GPDConfig
 
     key = lambda cfg: run_key("gpd", {}, 2, objects, CONFIG, cfg)
     assert key(GPDConfig()) == key(GPDConfig())

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 
@@ -11,14 +12,23 @@ import pytest
 from envs.objects import tiny_object_set
 from sgjax.stage1.pipeline import Stage1
 from train import dataset
-from train.label import LabelConfig, label, label_scene, scene_seed, summarize
+from train import sources
+from train.label import Labellers, LabelConfig, label, label_scene, scene_seed, summarize
 
-CONFIG = LabelConfig(n_objects=3, grasps_per_scene=4, scenes_per_shard=2, object_set="tiny")
+CONFIG = LabelConfig(
+    n_objects=3,
+    targets_per_scene=2,
+    per_source=(("stage1", 2), ("stage1_paper", 2), ("gpd", 2), ("perturbed", 2)),
+    scenes_per_shard=2,
+    object_set="tiny",
+    held_out_objects=("tiny/cylinder",),
+    held_out_object_every=2,  # scene 1 is built around the cylinder
+)
 
 
 @pytest.fixture(scope="module")
 def setup(small_db):
-    return tiny_object_set(), Stage1(small_db, CONFIG.stage1)
+    return tiny_object_set(), Labellers.make(CONFIG, Stage1(small_db, CONFIG.stage1))
 
 
 def test_scene_seeds_are_distinct_and_stable():
@@ -29,42 +39,77 @@ def test_scene_seeds_are_distinct_and_stable():
 
 
 def test_samples_hold_what_training_needs(setup):
-    objects, stage1 = setup
-    samples, stats = label_scene(0, objects, stage1, CONFIG)
+    objects, labellers = setup
+    samples, cloud, stats = label_scene(0, objects, labellers, CONFIG)
     n = len(samples["label"])
-    assert 1 <= n <= CONFIG.grasps_per_scene
-    checked = dataset.validate(samples)  # raises on any wrong field, dtype or shape
+    assert 1 <= n <= CONFIG.targets_per_scene * CONFIG.grasps_per_target
+    checked = dataset.validate(samples, fields=dataset.LABEL_FIELDS)  # raises on any wrong field, dtype or shape
     assert stats["trials"] == 4 * n  # each grasp and its 3 refinements
     assert sum(stats["outcomes"].values()) == stats["trials"]
     assert (checked["scene_seed"] == scene_seed(CONFIG.seed, 0)).all()
+    # Scene 0 is a training scene: no held-out object in it, several sources, each on record.
+    assert not checked["held_out_object"].any() and "tiny/cylinder" not in set(checked["object_name"])
     assert set(checked["object_name"]) <= {o.name for o in objects}
-    # Regions are in the grasp frame: real points lie near the closing region, around the origin.
-    real = checked["region"][checked["region_mask"]]
-    assert len(real) > 0 and np.abs(real).max() < 0.15
-    assert np.all(checked["region"][~checked["region_mask"]] == 0)
+    assert len(set(checked["source"])) >= 3 and set(checked["source"]) <= set(range(len(sources.SOURCES)))
+    # The labels agree with the recorded outcomes (0 is SUCCESS).
+    np.testing.assert_array_equal(checked["label"] == 1, checked["outcome"] == 0)
+    np.testing.assert_array_equal(checked["refine_labels"] == 1, checked["refine_outcomes"] == 0)
     # Poses are rigid transforms and widths within the gripper's stroke.
     rot = checked["pose"][:, :3, :3]
     assert np.allclose(rot @ rot.transpose(0, 2, 1), np.eye(3), atol=1e-4)
     assert ((checked["width"] >= 0) & (checked["width"] <= CONFIG.spec.max_opening)).all()
+    # The scene's Stage-2 cloud: real world points on the table, within the workspace crop.
+    assert len(cloud) > 1000 and np.isfinite(cloud).all() and cloud[:, 2].min() > -0.01
+    assert (checked["source"] == sources.source_index("perturbed")).any()
+
+
+def test_held_out_object_scenes_target_only_held_out_objects(setup):
+    objects, labellers = setup
+    samples, _, stats = label_scene(1, objects, labellers, CONFIG)
+    assert stats["held_out_objects"] and len(samples["label"]) > 0
+    assert set(samples["object_name"]) == {"tiny/cylinder"} and samples["held_out_object"].all()
+
+
+def test_perturbation_moves_and_turns_within_its_ranges():
+    rng = np.random.default_rng(0)
+    spec = CONFIG.spec
+    poses = np.tile(np.eye(4), (500, 1, 1))
+    poses[:, :3, 3] = rng.normal(size=(500, 3))
+    moved = sources.perturb(poses, rng, spec, sources.Perturbation((0.005, 0.02), (5.0, 20.0)))
+    rel = np.einsum("nji,njk->nik", poses[:, :3, :3], moved[:, :3, :3])
+    angle = np.rad2deg(np.arccos(np.clip((np.trace(rel, axis1=1, axis2=2) - 1) / 2, -1, 1)))
+    assert angle.min() >= 5.0 - 1e-6 and angle.max() <= 20.0 + 1e-6
+    centre = lambda p: p[:, :3, 3] + p[:, :3, 2] * 0.5 * spec.finger_length  # noqa: E731
+    shift = np.linalg.norm(centre(moved) - centre(poses), axis=1)
+    assert shift.min() >= 0.005 - 1e-9 and shift.max() <= 0.02 + 1e-9
+    assert np.allclose(moved[:, :3, :3] @ moved[:, :3, :3].transpose(0, 2, 1), np.eye(3), atol=1e-9)
+
+
+def test_paper_filters_drop_only_the_extra_judgement():
+    paper = sources.paper_filters(CONFIG.stage1)
+    assert paper.filter.hidden_contacts == "accept" and paper.filter.shadow_depth == 0.0
+    assert paper.filter.min_points == CONFIG.stage1.filter.min_points  # (ii) and (iii) as the paper's
+    assert paper.filter.max_normal_angle_deg == CONFIG.stage1.filter.max_normal_angle_deg
 
 
 @pytest.fixture(scope="module")
 def whole(setup, tmp_path_factory):
     """Scenes 0 and 1 labelled in one run -> (directory, summary)."""
-    objects, stage1 = setup
+    objects, labellers = setup
     out = tmp_path_factory.mktemp("whole")
-    return out, label(out, 2, CONFIG, objects=objects, stage1=stage1, progress=False)
+    return out, label(out, 2, CONFIG, objects=objects, stage1=labellers.stage1, progress=False)
 
 
 def test_resume_gives_the_same_data_as_one_run(setup, whole, tmp_path):
-    objects, stage1 = setup
+    objects, labellers = setup
+    stage1 = labellers.stage1
     # An "interrupted" run: scene 0 only, then a leftover temporary file, then the full request.
     label(tmp_path, 1, CONFIG, objects=objects, stage1=stage1, progress=False)
     (tmp_path / "scenes-000001-000002.npz.tmp-dead").write_bytes(b"half a file")
     summary = label(tmp_path, 2, CONFIG, objects=objects, stage1=stage1, progress=False)
     a, b = dataset.read_shards(whole[0]), dataset.read_shards(tmp_path)
     for key in dataset.SAMPLE_FIELDS:
-        np.testing.assert_array_equal(a[key], b[key])  # same samples, none lost or duplicated
+        np.testing.assert_array_equal(a[key], b[key])  # same samples and crops, none lost or duplicated
     assert summary.scenes == 2 and summary.samples == len(a["label"])
     assert sorted(p for p in os.listdir(tmp_path) if p.endswith(".npz")) == [
         "scenes-000000-000001.npz",
@@ -85,24 +130,49 @@ def test_summary_counts_trials_and_positives(whole):
     assert summary.trials == 4 * summary.samples  # each sample is a grasp and its 3 refinements
     assert summary.trials == sum(summary.outcomes.values())
     assert summarize(out) == summary
+    # Per-source counts add up to the valid samples, and the held-out scene's samples are counted.
+    assert sum(n for n, _ in summary.per_source.values()) == summary.valid_samples
+    assert summary.held_out_object_samples == int((valid & samples["held_out_object"]).sum()) > 0
+
+
+def test_crops_are_the_planners_crops_of_the_stored_cloud(whole):
+    """A cropped sample equals `crop_regions` on the stored scene cloud, and the crop cache returns the same."""
+    from sgjax.stage2.crops import crop_regions
+
+    out, _ = whole
+    path = dataset.shard_paths(out)[0]
+    labels, clouds = dataset.read_label_shard(path)
+    cropped = dataset.read_shards(out)  # fills the cache
+    again = dataset.read_shards(out)  # read from the cache
+    np.testing.assert_array_equal(cropped["region"], again["region"])
+    i = 0
+    cloud = clouds[labels["cloud_row"][i]]
+    direct = crop_regions(cloud, labels["pose"][i : i + 1], labels["width"][i : i + 1], CONFIG.spec, dataset.REGION_POINTS)
+    np.testing.assert_allclose(cropped["region"][i], np.asarray(direct.points)[0], atol=1e-6)
+    np.testing.assert_array_equal(cropped["region_mask"][i], np.asarray(direct.mask)[0])
+    assert cropped["region_mask"][i].sum() > 0
 
 
 def test_other_config_in_the_same_directory_is_refused(setup, whole):
     objects, stage1 = setup
-    other = LabelConfig(n_objects=3, grasps_per_scene=5, scenes_per_shard=2, object_set="tiny")
+    other = dataclasses.replace(CONFIG, targets_per_scene=1)
     with pytest.raises(ValueError, match="different labelling config"):
-        label(whole[0], 3, other, objects=objects, stage1=stage1, progress=False)
+        label(whole[0], 3, other, objects=objects, stage1=stage1.stage1, progress=False)
     saved = json.loads((whole[0] / "label_config.json").read_text())
-    assert saved["grasps_per_scene"] == 4
+    assert saved["targets_per_scene"] == 2
 
 
 def test_bad_arguments(setup, tmp_path):
     objects, stage1 = setup
     with pytest.raises(ValueError, match="n_scenes"):
-        label(tmp_path, 0, CONFIG, objects=objects, stage1=stage1, progress=False)
+        label(tmp_path, 0, CONFIG, objects=objects, stage1=stage1.stage1, progress=False)
     with pytest.raises(ValueError, match="backend"):
-        label(tmp_path, 1, CONFIG, objects=objects, stage1=stage1, backend="gpu", progress=False)
-    with pytest.raises(ValueError, match="grasps_per_scene"):
-        LabelConfig(grasps_per_scene=0)
+        label(tmp_path, 1, CONFIG, objects=objects, stage1=stage1.stage1, backend="gpu", progress=False)
+    with pytest.raises(ValueError, match="targets_per_scene"):
+        LabelConfig(targets_per_scene=0)
+    with pytest.raises(ValueError, match="unknown candidate source 'grasps'"):
+        LabelConfig(per_source=(("grasps", 4),))
+    with pytest.raises(ValueError, match="not in object set 'tiny'"):
+        label(tmp_path, 1, dataclasses.replace(CONFIG, held_out_objects=("ycb/058_golf_ball",)), objects=objects, stage1=stage1.stage1, progress=False)
     with pytest.raises(dataset.DatasetError, match="no labelled shards"):
         summarize(tmp_path)

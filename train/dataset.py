@@ -1,9 +1,13 @@
-"""E-RNet training samples: the shard format, reading, the scene-level split, batching, synthetic data.
+"""E-RNet training samples: the shard formats, reading, cropping, the scene-level split, batching, synthetic data.
 
-One sample = one executed grasp (paper Sec. IV-C): the scene points of its enlarged region in the
-grasp frame, the grasp, the execution label and the three refinement labels. The labelling pipeline
-writes shards with `write_shard` (atomic .npz, no pickles); training reads a directory with
-`read_shards`. Field names, dtypes and shapes are `SAMPLE_FIELDS`:
+One sample = one executed grasp (paper Sec. IV-C). Two formats:
+
+* Label shards (`write_label_shard`, written by `train.label`): per sample the grasp, its source,
+  outcomes and labels (`LABEL_FIELDS`); per scene its Stage-2 cloud, stored once (`cloud_points`
+  [T, 3] float32, the scenes' real points back to back, shuffled; `cloud_offsets` [K + 1]). A sample's
+  `cloud_row` is its scene's row. Any Stage-2 input is cut from these clouds later (`crop_label_shard`,
+  cached beside the shards), so trying another input needs no new labels.
+* Sample shards (`write_shard`): the training view, `SAMPLE_FIELDS`, with the input crop made:
 
     region         float32[P, 3]  scene points in the enlarged region, GRASP frame (padding rows 0)
     region_mask    bool[P]        True for real points (P = REGION_POINTS = 2048)
@@ -14,6 +18,9 @@ writes shards with `write_shard` (atomic .npz, no pickles); training reads a dir
     scene_seed     int64[]        the scene it came from (the train / held-out split is by scene)
     object_name    str            the target object
     valid          bool[]         False: the trial could not be run (excluded from training)
+    source         int8[]         candidate source (`train.sources.SOURCES` index)
+    outcome        int8[]         the initial grasp's trial outcome (`envs.rollout.Outcome`)
+    held_out_object bool[]        the target is a held-out object (never trained on)
 
 A shard (compressed .npz) stores each field stacked over its samples ([S, ...]); `object_name` as a
 fixed-width unicode array. Regions with more than P points should be randomly subsampled by the writer
@@ -23,7 +30,10 @@ fixed-width unicode array. Regions with more than P points should be randomly su
 from __future__ import annotations
 
 import dataclasses
+import functools
 import glob
+import hashlib
+import json
 import os
 import zipfile
 from collections.abc import Iterator, Mapping, Sequence
@@ -56,7 +66,19 @@ SAMPLE_FIELDS: dict[str, Field] = {
     "scene_seed": Field(np.dtype(np.int64), ()),
     "object_name": Field(np.dtype(str), ()),
     "valid": Field(np.dtype(bool), ()),
+    "source": Field(np.dtype(np.int8), ()),
+    "outcome": Field(np.dtype(np.int8), ()),
+    "held_out_object": Field(np.dtype(bool), ()),
 }
+
+# Per-sample fields of a label shard (the crop is made later from the scene clouds).
+LABEL_FIELDS: dict[str, Field] = {
+    **{k: f for k, f in SAMPLE_FIELDS.items() if k not in ("region", "region_mask")},
+    "refine_outcomes": Field(np.dtype(np.int8), (N_REFINEMENTS,)),
+    "scene_index": Field(np.dtype(np.int32), ()),
+    "cloud_row": Field(np.dtype(np.int32), ()),
+}
+CLOUD_FIELDS = ("cloud_points", "cloud_offsets")
 
 
 class DatasetError(ValueError):
@@ -79,18 +101,19 @@ def _as_columns(samples: Mapping[str, np.ndarray] | Sequence[Mapping[str, object
     return {k: np.stack([np.asarray(s[k]) for s in samples]) for k in SAMPLE_FIELDS}
 
 
-def validate(samples: Mapping[str, np.ndarray], source: str = "samples") -> Samples:
-    """Check names, dtypes, shapes and values; -> the columns cast to SAMPLE_FIELDS dtypes.
+def validate(samples: Mapping[str, np.ndarray], source: str = "samples", fields: Mapping[str, Field] = SAMPLE_FIELDS) -> Samples:
+    """Check names, dtypes, shapes and values; -> the columns cast to `fields`' dtypes (SAMPLE_FIELDS,
+    or LABEL_FIELDS for a label shard's samples).
 
     Raises DatasetError naming the source, field and problem (unknown/missing field, wrong shape,
     NaN in a real region point or pose, labels outside {0, 1})."""
-    unknown = sorted(set(samples) - set(SAMPLE_FIELDS))
-    missing = [k for k in SAMPLE_FIELDS if k not in samples]
+    unknown = sorted(set(samples) - set(fields))
+    missing = [k for k in fields if k not in samples]
     if unknown or missing:
         raise DatasetError(f"{source}: missing fields {missing}, unknown fields {unknown}")
     n = len(samples["label"]) if np.ndim(samples["label"]) else -1
     out: Samples = {}
-    for name, field in SAMPLE_FIELDS.items():
+    for name, field in fields.items():
         value = np.asarray(samples[name])
         if value.shape != (n, *field.shape):
             raise DatasetError(f"{source}: field {name!r} has shape {value.shape}, expected {(n, *field.shape)}")
@@ -104,8 +127,7 @@ def validate(samples: Mapping[str, np.ndarray], source: str = "samples") -> Samp
         out[name] = value.astype(field.dtype)
     if n == 0:
         return out
-    real = out["region_mask"]
-    if not np.isfinite(out["region"][real]).all():
+    if "region" in out and not np.isfinite(out["region"][out["region_mask"]]).all():
         raise DatasetError(f"{source}: NaN or inf in real region points")
     if not np.isfinite(out["pose"]).all() or not np.isfinite(out["width"]).all():
         raise DatasetError(f"{source}: NaN or inf in pose or width")
@@ -130,12 +152,7 @@ def write_shard(path: str | os.PathLike, samples: Mapping[str, np.ndarray] | Seq
 def read_shard(path: str | os.PathLike) -> Samples:
     """One shard -> validated columns. Raises DatasetError for unreadable or malformed files."""
     path = os.fspath(path)
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            columns = {k: data[k] for k in data.files}
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
-        raise DatasetError(f"{path}: not a readable .npz shard ({exc})") from None
-    return validate(columns, path)
+    return validate(_load(path), path)
 
 
 def shard_paths(directory: str | os.PathLike) -> list[str]:
@@ -144,15 +161,148 @@ def shard_paths(directory: str | os.PathLike) -> list[str]:
     return [p for p in paths if ".tmp-" not in os.path.basename(p)]
 
 
-def read_shards(directory: str | os.PathLike) -> Samples:
-    """All shards of a directory concatenated (sorted by file name, so the order is deterministic)."""
+def read_shards(directory: str | os.PathLike, crop: str = "enlarged") -> Samples:
+    """All shards of a directory concatenated (sorted by file name, so the order is deterministic), as
+    SAMPLE_FIELDS: label shards are cropped (`crop_label_shard`, cached), sample shards read as they are."""
     if not os.path.isdir(directory):
         raise DatasetError(f"{directory}: not a directory")
     paths = shard_paths(directory)
     if not paths:
         raise DatasetError(f"{directory}: no {SHARD_SUFFIX} shards")
-    parts = [read_shard(p) for p in paths]
+    spec = directory_spec(directory)
+    parts = [crop_label_shard(p, spec, crop) if is_label_shard(p) else read_shard(p) for p in paths]
     return {k: np.concatenate([p[k] for p in parts]) for k in SAMPLE_FIELDS}
+
+
+# ---------------------------------------------------------------------------------------------
+# Label shards: samples without crops, plus each scene's Stage-2 cloud.
+
+
+def empty_labels() -> Samples:
+    """A label shard's sample columns with no rows."""
+    return {k: np.zeros((0, *f.shape), f.dtype) for k, f in LABEL_FIELDS.items()}
+
+
+def write_label_shard(path: str | os.PathLike, samples: Mapping[str, np.ndarray], clouds: Sequence[np.ndarray]) -> str:
+    """Write a label shard atomically: samples (LABEL_FIELDS columns) whose `cloud_row` indexes
+    `clouds` (each [C_k, 3], the scene's real Stage-2 points in the order crops read them)."""
+    path = os.fspath(path)
+    if not path.endswith(SHARD_SUFFIX):
+        path += SHARD_SUFFIX
+    columns = validate(samples, path, LABEL_FIELDS)
+    rows = columns["cloud_row"]
+    if len(rows) and (rows.min() < 0 or rows.max() >= len(clouds)):
+        raise DatasetError(f"{path}: cloud_row outside [0, {len(clouds)})")
+    clouds = [np.asarray(c, np.float32).reshape(-1, 3) for c in clouds]
+    if any(not np.isfinite(c).all() for c in clouds):
+        raise DatasetError(f"{path}: NaN or inf in a scene cloud")
+    offsets = np.cumsum([0] + [len(c) for c in clouds]).astype(np.int64)
+    points = np.concatenate(clouds) if clouds else np.zeros((0, 3), np.float32)
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    atomic_write(path, lambda tmp: np.savez_compressed(tmp, **columns, cloud_points=points, cloud_offsets=offsets))
+    return path
+
+
+def _load(path: str) -> dict[str, np.ndarray]:
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            return {k: data[k] for k in data.files}
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
+        raise DatasetError(f"{path}: not a readable .npz shard ({exc})") from None
+
+
+def is_label_shard(path: str | os.PathLike) -> bool:
+    """Whether a shard holds scene clouds (a label shard) rather than crops."""
+    try:
+        with zipfile.ZipFile(os.fspath(path)) as archive:
+            return "cloud_points.npy" in archive.namelist()
+    except (OSError, zipfile.BadZipFile) as exc:
+        raise DatasetError(f"{path}: not a readable .npz shard ({exc})") from None
+
+
+def read_label_shard(path: str | os.PathLike) -> tuple[Samples, list[np.ndarray]]:
+    """A label shard -> (validated LABEL_FIELDS columns, the scene clouds [C_k, 3])."""
+    path = os.fspath(path)
+    columns = _load(path)
+    if not all(k in columns for k in CLOUD_FIELDS):
+        raise DatasetError(f"{path}: not a label shard (no {' / '.join(CLOUD_FIELDS)})")
+    points, offsets = columns.pop("cloud_points"), columns.pop("cloud_offsets")
+    if offsets.ndim != 1 or len(offsets) == 0 or offsets[0] != 0 or offsets[-1] != len(points) or np.any(np.diff(offsets) < 0):
+        raise DatasetError(f"{path}: cloud_offsets do not partition cloud_points")
+    samples = validate(columns, path, LABEL_FIELDS)
+    clouds = [points[a:b] for a, b in zip(offsets[:-1], offsets[1:])]
+    if len(samples["cloud_row"]) and samples["cloud_row"].max() >= len(clouds):
+        raise DatasetError(f"{path}: cloud_row beyond its {len(clouds)} clouds")
+    return samples, clouds
+
+
+def directory_spec(directory: str | os.PathLike) -> GripperSpec:
+    """The gripper a labelled directory was made with (its label_config.json), else DEFAULT_SPEC."""
+    path = os.path.join(os.fspath(directory), "label_config.json")
+    if not os.path.exists(path):
+        return DEFAULT_SPEC
+    with open(path) as fh:
+        saved = json.load(fh)
+    try:
+        return GripperSpec(**saved["stage1"]["spec"])
+    except (KeyError, TypeError) as exc:
+        raise DatasetError(f"{path}: no readable stage1.spec ({exc})") from None
+
+
+CROPS = ("enlarged",)  # the Stage-2 inputs a label shard can be cropped to
+CROP_VERSION = 1
+
+
+def _bucket(n: int, least: int) -> int:
+    """The next power of two >= max(n, least): few distinct shapes, so few compiles."""
+    return 1 << max(int(n) - 1, least - 1, 0).bit_length()
+
+
+def crop_samples(samples: Mapping[str, np.ndarray], clouds: Sequence[np.ndarray], spec: GripperSpec, crop: str = "enlarged") -> Samples:
+    """LABEL_FIELDS samples and their scene clouds -> SAMPLE_FIELDS samples with the `crop` input made
+    ("enlarged": the paper's enlarged region, `sgjax.stage2.crops.crop_regions`, REGION_POINTS points)."""
+    if crop not in CROPS:
+        raise DatasetError(f"unknown crop {crop!r}; known: {', '.join(CROPS)}")
+    from sgjax.stage2.crops import crop_regions
+
+    n = len(samples["label"])
+    region = np.zeros((n, REGION_POINTS, 3), np.float32)
+    region_mask = np.zeros((n, REGION_POINTS), bool)
+    fn = _jitted_crop(crop_regions)
+    for row, cloud in enumerate(clouds):
+        index = np.flatnonzero(samples["cloud_row"] == row)
+        if not len(index):
+            continue
+        c, g = _bucket(len(cloud), 1024), _bucket(len(index), 16)
+        points = np.zeros((c, 3), np.float32)
+        points[: len(cloud)] = cloud
+        poses = np.tile(np.eye(4, dtype=np.float32), (g, 1, 1))
+        widths = np.zeros(g, np.float32)
+        poses[: len(index)], widths[: len(index)] = samples["pose"][index], samples["width"][index]
+        out = fn(points, poses, widths, spec=spec, n_points=REGION_POINTS, scene_mask=np.arange(c) < len(cloud))
+        region[index] = np.asarray(out.points)[: len(index)]
+        region_mask[index] = np.asarray(out.mask)[: len(index)]
+    kept = {k: np.asarray(samples[k]) for k in SAMPLE_FIELDS if k not in ("region", "region_mask")}
+    return validate({**kept, "region": region, "region_mask": region_mask}, "cropped samples")
+
+
+@functools.cache
+def _jitted_crop(fn):
+    return jax.jit(fn, static_argnames=("spec", "n_points"))
+
+
+def crop_label_shard(path: str | os.PathLike, spec: GripperSpec = DEFAULT_SPEC, crop: str = "enlarged") -> Samples:
+    """A label shard cropped to `crop` (`crop_samples`), cached beside it in crops/<crop>-v<N>-<spec
+    hash>/ (shards never change once written, so a cached crop stays valid)."""
+    path = os.fspath(path)
+    key = hashlib.sha256(repr(spec).encode()).hexdigest()[:10]
+    cached = os.path.join(os.path.dirname(path), "crops", f"{crop}-v{CROP_VERSION}-{key}", os.path.basename(path))
+    if os.path.exists(cached) and os.path.getmtime(cached) >= os.path.getmtime(path):
+        return read_shard(cached)
+    samples, clouds = read_label_shard(path)
+    cropped = crop_samples(samples, clouds, spec, crop)
+    write_shard(cached, cropped)
+    return cropped
 
 
 def num_samples(samples: Mapping[str, np.ndarray]) -> int:
@@ -306,6 +456,9 @@ def synthetic_samples(
             "scene_seed": (seed * 1_000_003 + np.arange(n) // samples_per_scene).astype(np.int64),
             "object_name": np.full(n, "synthetic_box"),
             "valid": np.ones(n, bool),
+            "source": np.zeros(n, np.int8),
+            "outcome": np.where(label, 0, 3).astype(np.int8),  # success / dropped at lift
+            "held_out_object": np.zeros(n, bool),
         },
         "synthetic samples",
     )

@@ -1,16 +1,24 @@
-"""The labelling pipeline (paper Sec. IV-C): simulated scenes -> Stage-1 candidates -> grasp trials -> shards.
+"""The labelling pipeline (paper Sec. IV-C): simulated scenes -> candidates of several sources -> trials -> shards.
 
 Per scene (seeded by (seed, scene index)): drop `n_objects` objects on the table, render the depth
-camera, pick one visible target at random, run Stage 1 on its single-view cloud (with the scene cloud
-for the collision filter), execute `grasps_per_scene` randomly chosen candidates and their three
-refinement variants (deepen 0.008 m, rotate -15 / 0 / +15 deg) in parallel, and store one sample per
-executed grasp (`train.dataset.SAMPLE_FIELDS`): its enlarged region cropped from the Stage-2 scene
-cloud (`sgjax.geometry.pointcloud.scene_cloud`, the same cloud the planner scores on), the grasp, its label and
-the three refinement labels.
+camera, run Stage 1 on every visible object's single-view cloud, pick up to `targets_per_scene`
+targets at random, and on each execute grasps of several candidate sources (`train.sources`: Stage 1
+as the planner runs it, Stage 1 with only the paper's filters, GPD-style samples, perturbations of
+them; `LabelConfig.per_source` grasps of each) together with their three refinement variants
+(deepen 0.008 m, rotate -15 / 0 / +15 deg), all in one batch of parallel trials. One sample per
+executed grasp (`train.dataset.LABEL_FIELDS`: grasp, source, outcome, label and refinement labels).
+The scene's Stage-2 cloud (`sgjax.stage2.scene_cloud`, the cloud the planner scores on) is stored once
+per scene, shuffled, so that any Stage-2 input (the paper's enlarged region, or a larger crop) is cut
+from it later (`train.dataset.crop_label_shard`) without labelling again.
+
+Held out: `held_out_objects` (seen objects never trained on) appear only in every
+`held_out_object_every`-th scene, where they are the only targets; their samples carry
+`held_out_object`. Held-out scenes of the training objects are chosen at training time by scene
+(`train.dataset.split_by_scene`).
 
 Output directory:
     label_config.json               what made the data; a resumed run must match it
-    scenes-SSSSSS-EEEEEE.npz        samples of scenes [S, E) (a shard; atomic)
+    scenes-SSSSSS-EEEEEE.npz        samples and clouds of scenes [S, E) (a shard; atomic)
     scenes-SSSSSS-EEEEEE.json       their statistics (written before the shard)
 A shard's existence marks its scenes done: an interrupted run resumes with the scenes no shard
 covers, so no sample is lost or written twice; asking for more scenes later extends the run.
@@ -25,40 +33,49 @@ import re
 import time
 from collections.abc import Sequence
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 from envs import camera as camera_lib
 from envs import scene as scene_lib
-from envs.trial import Outcome, TrialConfig, check_backend, run_grasp_with_refinements
-from sgjax.stage2.crops import crop_regions
+from envs.rollout import Outcome
+from envs.trial import TrialConfig, check_backend, run_grasp_with_refinements
+from sgjax.geometry.gripper import GripperSpec
+from sgjax.samplers.gpd import GPDConfig
+from sgjax.stage1.pipeline import Stage1, Stage1Config
 from sgjax.stage2.scene_cloud import SceneCloudConfig
 from sgjax.utils.files import atomic_write_text
-from sgjax.geometry.gripper import GripperSpec
-from sgjax.stage1.pipeline import Stage1, Stage1Config
-from train import dataset
+from train import dataset, sources
 
 CONFIG_FILE = "label_config.json"
 SHARD_PATTERN = re.compile(r"^scenes-(\d{6})-(\d{6})\.npz$")
+# Seen objects never trained on (one thin, one round, one box-like, one flat extrusion): every
+# held_out_object_every-th scene is built around them, and no other scene contains them.
+SEEN_HELD_OUT = ("ycb/044_flat_screwdriver", "ycb/058_golf_ball", "ycb/073-c_lego_duplo", "procedural/extrusion_011")
+DEFAULT_PER_SOURCE = (("stage1", 8), ("stage1_paper", 8), ("gpd", 8), ("perturbed", 8))
 
 
 @dataclasses.dataclass(frozen=True)
 class LabelConfig:
     """How samples are made (everything that changes the data; saved with it).
 
-    n_objects: objects per scene (paper: 5). grasps_per_scene: candidates executed per scene, each with
-    its 3 refinements (4 trials). scenes_per_shard: scenes per output file (the resume granularity).
+    n_objects: objects per scene (paper: 5). targets_per_scene: objects whose grasps are executed.
+    per_source: (source, grasps) pairs: per target, that many grasps drawn at random from each source
+    (`train.sources.SOURCES`; fewer when a source has fewer), each with its 3 refinements (4 trials).
+    scenes_per_shard: scenes per output file (the resume granularity).
     min_target_points: a target must show at least this many camera points (Stage 1's own minimum).
+    held_out_objects / held_out_object_every: see the module docstring; () for none.
     voxel, max_scene_points, workspace_margin: the Stage-2 scene cloud (`scene_cloud`, a
     `sgjax.stage2.scene_cloud.SceneCloudConfig`) cropped to the workspace plus this margin.
     """
 
     n_objects: int = 5
-    grasps_per_scene: int = 16
+    targets_per_scene: int = 2
+    per_source: tuple[tuple[str, int], ...] = DEFAULT_PER_SOURCE
     scenes_per_shard: int = 4
     min_target_points: int = 50
     object_set: str = "seen"
+    held_out_objects: tuple[str, ...] = SEEN_HELD_OUT
+    held_out_object_every: int = 20
     seed: int = 0
     voxel: float = SceneCloudConfig.voxel
     max_scene_points: int = SceneCloudConfig.max_points
@@ -67,20 +84,45 @@ class LabelConfig:
     camera: camera_lib.CameraConfig = camera_lib.CameraConfig()
     trial: TrialConfig = TrialConfig()
     stage1: Stage1Config = Stage1Config()
+    # 32 x 7 samples per target on its neighbourhood (the benchmark's gpd method draws 128 x 7 on the
+    # whole scene): a few kept grasps per target are all a label source needs, at a fraction of the cost.
+    gpd: GPDConfig = GPDConfig(num_samples=32, max_points=2048)
+    perturbation: sources.Perturbation = sources.Perturbation()
 
     def __post_init__(self):
-        for name in ("n_objects", "grasps_per_scene", "scenes_per_shard", "min_target_points", "max_scene_points"):
+        for name in ("n_objects", "targets_per_scene", "scenes_per_shard", "min_target_points", "max_scene_points"):
             if getattr(self, name) < 1:
                 raise ValueError(f"LabelConfig.{name} must be >= 1, got {getattr(self, name)}")
+        if self.held_out_object_every < 2:
+            raise ValueError(f"LabelConfig.held_out_object_every must be >= 2, got {self.held_out_object_every}")
+        per_source = tuple((str(name), int(count)) for name, count in self.per_source)
+        for name, count in per_source:
+            sources.source_index(name)  # raises naming the known sources
+            if count < 0:
+                raise ValueError(f"LabelConfig.per_source: {name} must have >= 0 grasps, got {count}")
+        if len({name for name, _ in per_source}) != len(per_source) or not any(c for _, c in per_source):
+            raise ValueError(f"LabelConfig.per_source must name each source once and ask for some grasps, got {per_source}")
+        if self.gpd.spec != self.spec:
+            raise ValueError("LabelConfig.gpd.spec differs from the Stage-1 gripper spec")
+        object.__setattr__(self, "per_source", per_source)
+        object.__setattr__(self, "held_out_objects", tuple(str(n) for n in self.held_out_objects))
 
     @property
     def spec(self) -> GripperSpec:
         return self.stage1.spec
 
     @property
+    def grasps_per_target(self) -> int:
+        return sum(count for _, count in self.per_source)
+
+    @property
     def scene_cloud(self) -> SceneCloudConfig:
         """The Stage-2 scene cloud: cropped to the workspace grown by workspace_margin."""
         return scene_lib.stage2_scene_cloud(self.scene, self.workspace_margin, max_points=self.max_scene_points, voxel=self.voxel)
+
+    def held_out_scene(self, index: int) -> bool:
+        """Whether scene `index` is built around the held-out objects."""
+        return bool(self.held_out_objects) and index % self.held_out_object_every == self.held_out_object_every - 1
 
     def to_json(self) -> str:
         return json.dumps(dataclasses.asdict(self), sort_keys=True, default=str)
@@ -95,6 +137,8 @@ class LabelSummary:
     valid_samples: int
     positives: float  # fraction of valid samples with label 1
     refine_positives: list[float]  # per refinement variant
+    per_source: dict[str, tuple[int, float]]  # source -> (valid samples, positive rate)
+    held_out_object_samples: int
     trials: int
     invalid_trials: int
     outcomes: dict[str, int]
@@ -106,10 +150,11 @@ class LabelSummary:
         skipped = ", ".join(f"{k}: {v}" for k, v in sorted(self.scenes_without_samples.items())) or "none"
         return [
             (
-                f"scenes {self.scenes}, samples {self.samples} ({self.valid_samples} valid), "
-                f"positive rate {self.positives:.1%}, refine positives "
-                + " / ".join(f"{p:.1%}" for p in self.refine_positives)
+                f"scenes {self.scenes}, samples {self.samples} ({self.valid_samples} valid, "
+                f"{self.held_out_object_samples} on held-out objects), positive rate {self.positives:.1%}, "
+                "refine positives " + " / ".join(f"{p:.1%}" for p in self.refine_positives)
             ),
+            "per source: " + ", ".join(f"{k} {n} ({p:.1%} positive)" for k, (n, p) in self.per_source.items()),
             (
                 f"trials {self.trials} ({self.invalid_trials} invalid), "
                 f"{self.trials_per_second:.1f} trials/s end to end over {self.seconds:.0f} s"
@@ -132,80 +177,180 @@ def stage2_cloud(points: np.ndarray, config: LabelConfig, labels: np.ndarray | N
     return config.scene_cloud.make(points, labels, seed)
 
 
-_crop = jax.jit(crop_regions, static_argnames=("spec", "n_points"))
+@dataclasses.dataclass
+class Labellers:
+    """What labels a scene: Stage 1 as the planner runs it and Stage 1 with the paper's filters only."""
+
+    stage1: Stage1
+    stage1_paper: Stage1
+
+    @classmethod
+    def make(cls, config: LabelConfig, stage1: Stage1 | None = None) -> Labellers:
+        """stage1: a Stage1 of config.stage1 (default: on the full primitive database)."""
+        stage1 = Stage1(None, config.stage1) if stage1 is None else stage1
+        if stage1.config != config.stage1:
+            raise ValueError("stage1.config differs from config.stage1")
+        return cls(stage1, Stage1(stage1.db, sources.paper_filters(config.stage1)))
 
 
-def _empty_samples() -> dict[str, np.ndarray]:
-    return {k: np.zeros((0, *f.shape), f.dtype) for k, f in dataset.SAMPLE_FIELDS.items()}
+def scene_objects(index: int, objects: Sequence, config: LabelConfig, rng: np.random.Generator) -> tuple[list, int]:
+    """The objects scene `index` is drawn from and how many it holds: the training objects, or (a
+    held-out-object scene) one or two held-out objects plus training objects, all of them placed."""
+    held = set(config.held_out_objects)
+    train_pool = [o for o in objects if o.name not in held]
+    if not config.held_out_scene(index):
+        return train_pool, config.n_objects
+    held_pool = [o for o in objects if o.name in held]
+    k = min(len(held_pool), config.n_objects, int(rng.integers(1, 3)))
+    chosen = [held_pool[i] for i in rng.choice(len(held_pool), k, replace=False)]
+    rest = config.n_objects - k
+    if rest:
+        chosen += [train_pool[i] for i in rng.choice(len(train_pool), rest, replace=rest > len(train_pool))]
+    return chosen, len(chosen)
+
+
+def _pick(rng: np.random.Generator, n: int, k: int) -> np.ndarray:
+    return np.sort(rng.choice(n, size=min(k, n), replace=False)) if n else np.zeros(0, np.int64)
+
+
+def scene_candidates(
+    obs, visible: np.ndarray, order: np.ndarray, labellers: Labellers, config: LabelConfig, seed: int
+) -> tuple[list[int], dict[str, dict[int, tuple[np.ndarray, np.ndarray]]]]:
+    """The targets and every non-perturbed source's candidates on them: (targets, {source: {target:
+    (poses, widths)}}). Stage 1 runs on every visible object in one call; the GPD-style sampler, the
+    costliest per object, only on the objects of `order` (candidate targets, in preference order) until
+    targets_per_scene of them have a candidate from some source."""
+    wanted = {name for name, count in config.per_source if count}
+    perturbed = "perturbed" in wanted
+    clouds = [obs.object_cloud(int(k)) for k in visible]
+    clouds += [clouds[0]] * (config.n_objects - len(clouds))  # padded to n_objects clouds: one compile
+    views = np.tile(np.asarray(config.camera.position, np.float32), (len(clouds), 1))
+    found: dict[str, dict[int, tuple[np.ndarray, np.ndarray]]] = {}
+    for name, stage1, scenes in (
+        ("stage1", labellers.stage1, [obs.points] * len(clouds)),
+        ("stage1_paper", labellers.stage1_paper, None),
+    ):
+        if name in wanted or perturbed:
+            batch = stage1.batch(clouds, scenes, views, seed % (2**31), scene_lib.TABLE_PLANE)[: len(visible)]
+            found[name] = {int(k): (c.poses, c.widths) for k, c in zip(visible, batch)}
+    targets: list[int] = []
+    use_gpd = "gpd" in wanted or perturbed
+    if use_gpd:
+        found["gpd"] = {}
+    for k in (int(k) for k in order):
+        if len(targets) == config.targets_per_scene:
+            break
+        if use_gpd:
+            found["gpd"].update(
+                sources.gpd_candidates(obs.points, obs.point_labels, [k], config.camera.position, (seed + k) % (2**31), config.gpd)
+            )
+        if any(len(f[k][0]) for f in found.values()):
+            targets.append(k)
+    return targets, found
+
+
+def choose_grasps(
+    found: dict[str, dict[int, tuple[np.ndarray, np.ndarray]]], target: int, config: LabelConfig, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The grasps executed on `target`: (poses [G, 4, 4], widths [G], source codes [G]), per_source many
+    of each source drawn at random; perturbed ones from everything the other sources offer."""
+    poses, widths, codes = [], [], []
+    pool = [found[name][target] for name in found if len(found[name][target][0])]
+    for name, count in config.per_source:
+        if not count:
+            continue
+        if name == "perturbed":
+            if not pool:
+                continue
+            all_poses = np.concatenate([p for p, _ in pool])
+            all_widths = np.concatenate([w for _, w in pool])
+            pick = rng.integers(0, len(all_poses), count)
+            chosen = sources.perturb(all_poses[pick], rng, config.spec, config.perturbation), all_widths[pick]
+        else:
+            p, w = found[name][target]
+            pick = _pick(rng, len(p), count)
+            chosen = p[pick], w[pick]
+        poses.append(np.asarray(chosen[0], np.float64))
+        widths.append(np.clip(np.asarray(chosen[1], np.float64), 0.0, config.spec.max_opening))
+        codes.append(np.full(len(chosen[0]), sources.source_index(name), np.int8))
+    if not poses:
+        return np.zeros((0, 4, 4)), np.zeros(0), np.zeros(0, np.int8)
+    return np.concatenate(poses), np.concatenate(widths), np.concatenate(codes)
+
+
+def _no_samples() -> tuple[dict[str, np.ndarray], np.ndarray]:
+    return dataset.empty_labels(), np.zeros((0, 3), np.float32)
 
 
 def label_scene(
-    index: int, objects: Sequence, stage1: Stage1, config: LabelConfig, backend: str = "cpu", nthread: int = 0
-) -> tuple[dict[str, np.ndarray], dict]:
-    """Samples of scene `index` (fields of SAMPLE_FIELDS, [S, ...]) and its statistics."""
+    index: int, objects: Sequence, labellers: Labellers, config: LabelConfig, backend: str = "cpu", nthread: int = 0
+) -> tuple[dict[str, np.ndarray], np.ndarray, dict]:
+    """Scene `index` -> (samples: fields of LABEL_FIELDS [S, ...] (cloud_row 0), its Stage-2 cloud
+    [C, 3] (the real points, shuffled), statistics)."""
     seed = scene_seed(config.seed, index)
     rng = np.random.default_rng(seed)
-    stats = {"scene": index, "scene_seed": seed, "trials": 0, "outcomes": {}, "skipped": None}
+    held_scene = config.held_out_scene(index)
+    stats = {"scene": index, "scene_seed": seed, "trials": 0, "outcomes": {}, "skipped": None, "held_out_objects": held_scene}
+    timing = stats["seconds"] = {}
+    began = time.perf_counter()
+    pool, n_objects = scene_objects(index, objects, config, rng)
     try:
-        scene = scene_lib.make_scene(objects, config.n_objects, seed, config.scene, config.spec)
+        scene = scene_lib.make_scene(pool, n_objects, seed, config.scene, config.spec)
     except ValueError as exc:  # an unloadable mesh; recorded, the run goes on
         stats["skipped"] = f"scene failed: {exc}"
-        return _empty_samples(), stats
+        return (*_no_samples(), stats)
     obs = camera_lib.observe(scene, config.camera, seed=seed)
+    timing["scene"] = time.perf_counter() - began
     counts = np.bincount(obs.point_labels[obs.point_labels >= 0], minlength=scene.n_objects)
     visible = np.flatnonzero((counts >= config.min_target_points) & scene.present)
-    if len(visible) == 0:
+    held = np.array([scene.assets[k].name in config.held_out_objects for k in range(scene.n_objects)], bool)
+    eligible = visible[held[visible]] if held_scene else visible
+    if len(eligible) == 0:
         stats["skipped"] = "no visible target"
-        return _empty_samples(), stats
-    # Stage 1 on every visible object in one call (padded to n_objects clouds: one compile), then
-    # a random target among those with candidates, so fewer scenes go to waste.
-    clouds = [obs.object_cloud(int(k)) for k in visible]
-    clouds += [clouds[0]] * (config.n_objects - len(clouds))
-    scenes = [obs.points] * len(clouds)
-    views = np.tile(np.asarray(config.camera.position, np.float32), (len(clouds), 1))
-    found = stage1.batch(clouds, scenes, views, seed % (2**31), scene_lib.TABLE_PLANE)[: len(visible)]
-    usable = [i for i, c in enumerate(found) if len(c)]
-    if not usable:
+        return (*_no_samples(), stats)
+    mark = time.perf_counter()
+    targets, found = scene_candidates(obs, visible, rng.permutation(eligible), labellers, config, seed)
+    timing["candidates"] = time.perf_counter() - mark
+    if not targets:
         stats["skipped"] = "no candidates"
-        stats["reason"] = "; ".join(f"{scene.assets[k].name}: {c.reason}" for k, c in zip(visible, found))
-        return _empty_samples(), stats
-    pick = int(rng.choice(usable))
-    target, candidates = int(visible[pick]), found[pick]
-    g = min(config.grasps_per_scene, len(candidates))
-    chosen = np.sort(rng.choice(len(candidates), size=g, replace=False))
-    poses, widths = candidates.poses[chosen], np.clip(candidates.widths[chosen], 0.0, config.spec.max_opening)
+        return (*_no_samples(), stats)
+    parts = [(t, *choose_grasps(found, t, config, rng)) for t in targets]
+    target_of = np.concatenate([np.full(len(p), t) for t, p, _, _ in parts])
+    poses = np.concatenate([p for _, p, _, _ in parts])
+    widths = np.concatenate([w for _, _, w, _ in parts])
+    codes = np.concatenate([c for _, _, _, c in parts])
+    mark = time.perf_counter()
     labels, result = run_grasp_with_refinements(
-        scene, target, poses, widths, backend=backend, config=config.trial, nthread=nthread
+        scene, target_of, poses, widths, backend=backend, config=config.trial, nthread=nthread
     )
-    outcome = result.outcome.reshape(g, -1)
+    timing["trials"] = time.perf_counter() - mark
+    outcome = result.outcome.reshape(len(poses), -1)
     stats["trials"] = int(outcome.size)
     stats["outcomes"] = result.counts()
+    stats["targets"] = [scene.assets[t].name for t in targets]
 
+    mark = time.perf_counter()
     cloud, mask, _ = stage2_cloud(obs.points, config, seed=seed)
-    order = rng.permutation(len(cloud))  # crop_regions keeps the first region points in scene order
-    padded_poses = np.tile(np.eye(4, dtype=np.float32), (config.grasps_per_scene, 1, 1))
-    padded_widths = np.zeros(config.grasps_per_scene, np.float32)
-    padded_poses[:g], padded_widths[:g] = poses, widths
-    region = _crop(
-        jnp.asarray(cloud[order]),
-        jnp.asarray(padded_poses),
-        jnp.asarray(padded_widths),
-        spec=config.spec,
-        n_points=dataset.REGION_POINTS,
-        scene_mask=jnp.asarray(mask[order]),
-    )
+    order = rng.permutation(len(cloud))  # crops keep the first region points in scene order: shuffle once
+    cloud = cloud[order][mask[order]].astype(np.float32)
+    g = len(poses)
     samples = {
-        "region": np.asarray(region.points)[:g],
-        "region_mask": np.asarray(region.mask)[:g],
         "pose": poses.astype(np.float32),
         "width": widths.astype(np.float32),
         "label": labels[:, 0].astype(np.int8),
         "refine_labels": labels[:, 1:].astype(np.int8),
+        "outcome": outcome[:, 0].astype(np.int8),
+        "refine_outcomes": outcome[:, 1:].astype(np.int8),
+        "source": codes,
         "scene_seed": np.full(g, seed, np.int64),
-        "object_name": np.array([scene.assets[target].name] * g),
+        "scene_index": np.full(g, index, np.int32),
+        "cloud_row": np.zeros(g, np.int32),
+        "object_name": np.array([scene.assets[t].name for t in target_of]),
+        "held_out_object": held[target_of],
         "valid": ~(outcome == Outcome.INVALID).any(axis=1),
     }
-    return samples, stats
+    timing["cloud"] = time.perf_counter() - mark
+    return samples, cloud, stats
 
 
 def _covered(out_dir: str) -> set[int]:
@@ -272,9 +417,16 @@ def label(
     if not objects:
         raise ValueError(f"object set {config.object_set!r} is empty")
     identity = object_set_identity(config.object_set, objects)
-    stage1 = Stage1(None, config.stage1) if stage1 is None else stage1
-    if stage1.config != config.stage1:
-        raise ValueError("stage1.config differs from config.stage1")
+    names = {o.name for o in objects}
+    missing = [n for n in config.held_out_objects if n not in names]
+    if missing:
+        raise ValueError(
+            f"held-out objects {missing} are not in object set {config.object_set!r}; "
+            "name members of the set (LabelConfig.held_out_objects, --held-out-objects) or none"
+        )
+    if len(names - set(config.held_out_objects)) == 0:
+        raise ValueError(f"object set {config.object_set!r} has no object left to train on besides the held-out ones")
+    labellers = Labellers.make(config, stage1)
     done = _covered(out_dir)
     todo = _runs([i for i in range(n_scenes) if i not in done], config.scenes_per_shard)
     bar = None
@@ -284,18 +436,21 @@ def label(
         bar = tqdm(total=n_scenes, initial=n_scenes - sum(e - s for s, e in todo), unit="scene", desc="label")
     for start, end in todo:
         began = time.perf_counter()
-        parts, stats = [], []
+        parts, clouds, stats = [], [], []
         for index in range(start, end):
-            samples, scene_stats = label_scene(index, objects, stage1, config, backend, nthread)
-            parts.append(samples)
+            samples, cloud, scene_stats = label_scene(index, objects, labellers, config, backend, nthread)
+            if len(samples["label"]):
+                samples["cloud_row"][:] = len(clouds)
+                parts.append(samples)
+                clouds.append(cloud)
             stats.append(scene_stats)
             if bar is not None:
                 bar.update(1)
-        samples = {k: np.concatenate([p[k] for p in parts]) for k in dataset.SAMPLE_FIELDS}
+        samples = {k: np.concatenate([p[k] for p in parts]) for k in dataset.LABEL_FIELDS} if parts else dataset.empty_labels()
         base = os.path.join(out_dir, f"scenes-{start:06d}-{end:06d}")
         record = {"scenes": stats, "seconds": time.perf_counter() - began, "objects": identity}
         atomic_write_text(base + ".json", json.dumps(record))
-        dataset.write_shard(base + dataset.SHARD_SUFFIX, samples)  # written last: marks the scenes done
+        dataset.write_label_shard(base + dataset.SHARD_SUFFIX, samples, clouds)  # written last: marks the scenes done
         if bar is not None:
             bar.set_postfix(samples=sum(len(p["label"]) for p in parts))
     if bar is not None:
@@ -309,7 +464,9 @@ def summarize(out_dir: str | os.PathLike) -> LabelSummary:
     shards = [os.path.join(out_dir, n) for n in sorted(os.listdir(out_dir)) if SHARD_PATTERN.match(n)]
     if not shards:
         raise dataset.DatasetError(f"{out_dir}: no labelled shards")
-    samples = {k: np.concatenate([dataset.read_shard(p)[k] for p in shards]) for k in ("label", "refine_labels", "valid")}
+    fields = ("label", "refine_labels", "valid", "source", "held_out_object")
+    read = [dataset.read_label_shard(p)[0] for p in shards]
+    samples = {k: np.concatenate([r[k] for r in read]) for k in fields}
     outcomes = {o.name.lower(): 0 for o in Outcome}
     skipped: dict[str, int] = {}
     scenes, trials, seconds = 0, 0, 0.0
@@ -330,12 +487,19 @@ def summarize(out_dir: str | os.PathLike) -> LabelSummary:
                 skipped[key] = skipped.get(key, 0) + 1
     valid = samples["valid"]
     n_valid = int(valid.sum())
+    per_source = {}
+    for code, name in enumerate(sources.SOURCES):
+        rows = valid & (samples["source"] == code)
+        if rows.any():
+            per_source[name] = (int(rows.sum()), float(samples["label"][rows].mean()))
     return LabelSummary(
         scenes=scenes,
         samples=len(valid),
         valid_samples=n_valid,
         positives=float(samples["label"][valid].mean()) if n_valid else 0.0,
         refine_positives=[float(v) for v in samples["refine_labels"][valid].mean(0)] if n_valid else [0.0] * 3,
+        per_source=per_source,
+        held_out_object_samples=int((valid & samples["held_out_object"]).sum()),
         trials=trials,
         invalid_trials=outcomes["invalid"],
         outcomes=outcomes,

@@ -358,7 +358,8 @@ def _checkpoint_manager(run_dir: str):
 
 def _load_data(data: str | os.PathLike | Mapping[str, np.ndarray], config: TrainConfig):
     samples = dataset.read_shards(data) if isinstance(data, (str, os.PathLike)) else dataset.validate(data, "data")
-    samples = dataset.select(samples, np.flatnonzero(samples["valid"]))
+    # Held-out objects are never trained on (nor mixed into the held-out scenes' metrics).
+    samples = dataset.select(samples, np.flatnonzero(samples["valid"] & ~samples["held_out_object"]))
     if dataset.num_samples(samples) == 0:
         raise dataset.DatasetError("no valid samples to train on")
     train_index, held_index = dataset.split_by_scene(samples["scene_seed"], config.held_out_fraction, config.seed)

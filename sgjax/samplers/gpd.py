@@ -106,6 +106,15 @@ def prepare_cloud(
     """Object points voxel-downsampled and padded: (points [max_points, 3] f32, mask [max_points],
     table_z, number of object points before padding). Table points (labels < 0) only give table_z
     (median z; -inf when no table point is seen, i.e. no table check)."""
+    out, mask, table_z, n, _ = prepare_labelled_cloud(points, labels, config, seed)
+    return out, mask, table_z, n
+
+
+def prepare_labelled_cloud(
+    points: np.ndarray, labels: np.ndarray, config: GPDConfig, seed: int = 0
+) -> tuple[np.ndarray, np.ndarray, float, int, np.ndarray]:
+    """`prepare_cloud` plus the object label of each kept point: (..., labels [max_points] int32, -1
+    for padding), so that candidates can be drawn on one object (`candidates(sample_mask=...)`)."""
     points = np.asarray(points, np.float32).reshape(-1, 3)
     labels = np.asarray(labels).reshape(-1)
     if len(labels) != len(points):
@@ -113,14 +122,18 @@ def prepare_cloud(
     finite = np.isfinite(points).all(axis=1)
     table = finite & (labels < 0)
     table_z = float(np.median(points[table, 2])) if table.any() else -np.inf
-    obj = points[finite & (labels >= 0)]
-    obj = obj[voxel_downsample(obj, config.voxel_size)]
+    keep = finite & (labels >= 0)
+    obj, obj_labels = points[keep], labels[keep]
+    first = voxel_downsample(obj, config.voxel_size)
+    obj, obj_labels = obj[first], obj_labels[first]
     if len(obj) > config.max_points:
-        keep = np.random.default_rng(seed).choice(len(obj), config.max_points, replace=False)
-        obj = obj[np.sort(keep)]
+        pick = np.sort(np.random.default_rng(seed).choice(len(obj), config.max_points, replace=False))
+        obj, obj_labels = obj[pick], obj_labels[pick]
     out = np.zeros((config.max_points, 3), np.float32)
     out[: len(obj)] = obj
-    return out, np.arange(config.max_points) < len(obj), table_z, len(obj)
+    out_labels = np.full(config.max_points, -1, np.int32)
+    out_labels[: len(obj)] = obj_labels
+    return out, np.arange(config.max_points) < len(obj), table_z, len(obj), out_labels
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -148,16 +161,18 @@ def lateral_offsets(config: GPDConfig) -> np.ndarray:
 
 
 @functools.partial(jax.jit, static_argnames="config")
-def candidates(points, mask, viewpoint, table_z, key, config: GPDConfig) -> dict:
+def candidates(points, mask, viewpoint, table_z, key, config: GPDConfig, sample_mask=None) -> dict:
     """Stage 1: collision-free antipodal candidates on a padded cloud.
 
     points [N, 3], mask [N], viewpoint [3], table_z [], key -> {"poses" [K, A, 4, 4], "valid" [K, A],
     "normals" [N, 3], "sample" [K]}; K = num_samples, A = num_angles.
+    sample_mask [N] or None: the points to draw the K samples from (e.g. one object's, for candidates on
+    that object); every point of `mask` is still an obstacle. None: all of `mask`.
     """
     spec, n = config.spec, points.shape[0]
     table = _table_plane(table_z)
     normals = estimate_normals(points, mask, viewpoint, config.normal_neighbours)
-    weight = mask.astype(jnp.float32)
+    weight = (mask if sample_mask is None else mask & sample_mask).astype(jnp.float32)
     sample = jax.random.choice(key, n, (config.num_samples,), replace=True, p=weight / jnp.maximum(weight.sum(), 1.0))
     p, x = points[sample], normals[sample]  # [K, 3]
     down = jnp.asarray(DOWN)
@@ -195,7 +210,7 @@ def candidates(points, mask, viewpoint, table_z, key, config: GPDConfig) -> dict
     origin = p[:, None] - offset[..., None] * xk - depth[..., None] * z
     poses = jnp.zeros((*z.shape[:2], 4, 4), jnp.float32).at[..., :3, :3].set(rotation)
     poses = poses.at[..., :3, 3].set(origin).at[..., 3, 3].set(1.0)
-    valid = jnp.any(free, -1) & approach_ok & mask[sample][:, None]
+    valid = jnp.any(free, -1) & approach_ok & (weight[sample] > 0)[:, None]
     return {"poses": poses, "valid": valid, "normals": normals, "sample": sample, "approach_ok": approach_ok}
 
 
