@@ -168,6 +168,9 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
         network, run = PointNetGPDConfig, train_pointnetgpd.train
 
+    hand = {"hand_points": args.hand_points} if args.hand_points else {}
+    if hand and args.network != "ernet":
+        return _fail("--hand-points is an E-RNet input; the PointNetGPD baseline sees its closing region only")
     if args.synthetic:
         os.makedirs(args.data, exist_ok=True)
         if dataset.shard_paths(args.data):
@@ -182,7 +185,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         decoupled_weight_decay=args.decoupled_weight_decay,
         seed=args.seed,
         held_out_fraction=args.held_out,
-        model={"paper": network.paper, "light": network.light, "tiny": network.tiny}[args.model](),
+        model={"paper": network.paper, "light": network.light, "tiny": network.tiny}[args.model](**hand),
     )
     try:
         result = run(args.data, args.out, config, progress=not args.quiet)
@@ -192,6 +195,26 @@ def _cmd_train(args: argparse.Namespace) -> int:
         print(f"\ninterrupted: rerun the same command to resume after the last finished epoch in {args.out}", file=sys.stderr)
         return 130
     print(f"done: {len(result.history)} epochs; checkpoints, metrics.json/.csv and curves.png in {result.run_dir}")
+    return 0
+
+
+def _cmd_score_data(args: argparse.Namespace) -> int:
+    from train import dataset, judgement, score_data
+
+    try:
+        result = score_data.score_directory(args.data, args.model, args.network, args.batch_size)
+    except (dataset.DatasetError, ValueError, FileNotFoundError) as exc:
+        return _fail(str(exc))
+    if args.json:
+        print(json.dumps(result, indent=1))
+        return 0
+    print(f"{args.network} ({args.model or 'shipped default'}) on {args.data}:")
+    for name, metrics in result.items():
+        if metrics is None:
+            continue
+        judged = metrics["judgement"]
+        print(f"  {name}: {judged['samples']} samples, positive rate {judged['positive_rate']:.3f}, mean score {judged['mean_score']:.3f}")
+        print(f"    {judgement.summary_line(judged)}")
     return 0
 
 
@@ -502,10 +525,26 @@ def build_parser() -> argparse.ArgumentParser:
         "--network", choices=("ernet", "pointnetgpd"), default="ernet",
         help="ernet (default) or the PointNetGPD baseline (trained on the same shards, `label` only)",
     )
+    p.add_argument(
+        "--hand-points", type=int, default=0, metavar="N",
+        help="E-RNet also sees N points of the hand's swept volume (fingers, palm, the last 5 cm of the approach); "
+        "0: the paper's input, the enlarged region only",
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--synthetic", type=int, default=0, metavar="N", help="first write N synthetic samples to --data")
     p.add_argument("--quiet", action="store_true", help="no progress bar or per-epoch lines")
     p.set_defaults(func=_cmd_train)
+
+    p = sub.add_parser(
+        "score-data",
+        help="judge a trained scorer on a labelled directory: AUC overall and per source, calibration, collisions' scores",
+    )
+    p.add_argument("--data", required=True, help="a labelled directory (sgjax label --out)")
+    p.add_argument("--model", default=None, help="a `sgjax train` run directory (default: the shipped checkpoint)")
+    p.add_argument("--network", choices=("ernet", "pointnetgpd"), default="ernet")
+    p.add_argument("--batch-size", type=int, default=128)
+    p.add_argument("--json", action="store_true", help="print every metric as JSON")
+    p.set_defaults(func=_cmd_score_data)
 
     p = sub.add_parser("label", help="label grasps in simulated scenes for E-RNet training (resumable)")
     p.add_argument("--scenes", type=int, required=True, help="scenes 0..N-1 (rerun with a larger N to extend)")

@@ -146,7 +146,8 @@ def test_paper_sizes_shapes():
     model = ernet.abstract_model(config)
     m = 2
     inputs = ernet.ERNetInputs(
-        jnp.zeros((m, 960, 3)), jnp.ones((m, 960), bool), jnp.zeros((m, 345), jnp.int32), jnp.ones((m, 345), bool)
+        jnp.zeros((m, 960, 3)), jnp.ones((m, 960), bool), jnp.zeros((m, 345), jnp.int32), jnp.ones((m, 345), bool),
+        jnp.zeros((m, 0, 3)), jnp.zeros((m, 0), bool),
     )
     features = nnx.eval_shape(lambda mdl, i: mdl.backbone(i.points, i.mask), model, inputs)
     assert features.shape == (m, 960, 128)
@@ -254,3 +255,45 @@ def test_bad_inputs_raise_clear_errors(tiny_model):
     out = ernet.score(graphdef, state, scene, poses, np.array([0.5, -1.0, np.nan, 0.05], np.float32), keep)
     np.testing.assert_array_equal(np.asarray(out.valid)[:3], [False, False, False])
     assert np.all(np.asarray(out.eval_prob)[:3] == 0) and np.isfinite(np.asarray(out.eval_prob)).all()
+
+
+def _box_scene(rng, obstacle: bool) -> np.ndarray:
+    """A 4 cm cube at the origin's closing region (points on its surface, world = gripper frame) and,
+    with `obstacle`, a neighbour's face in the path of the right finger 2-4 cm before the grasp."""
+    cube = rng.uniform(-0.02, 0.02, (1500, 3))
+    axis = rng.integers(0, 3, 1500)
+    cube[np.arange(1500), axis] = np.sign(cube[np.arange(1500), axis]) * 0.02
+    cube[:, 2] += 0.03  # between the fingertips (z 0..0.05)
+    if not obstacle:
+        return cube.astype(np.float32)
+    wall = np.stack([rng.uniform(0.036, 0.05, 300), rng.uniform(-0.01, 0.01, 300), rng.uniform(-0.04, -0.02, 300)], -1)
+    return np.concatenate([cube, wall]).astype(np.float32)
+
+
+def test_swept_input_sees_what_the_fingers_would_hit():
+    """An obstacle in the right finger's approach path lies outside the enlarged region: the paper's
+    input cannot see it (identical scores), the swept input crops it as hand points and its scores change."""
+    spec = ernet.DEFAULT_SPEC
+    poses, widths = np.eye(4, dtype=np.float32)[None], np.asarray([0.07], np.float32)
+    clear = _box_scene(np.random.default_rng(0), False)
+    blocked = _box_scene(np.random.default_rng(0), True)  # the same cube, the wall appended
+    wall = blocked[len(clear):]
+    assert not np.asarray(crops.in_enlarged_region_local(wall[None], widths, spec)).any()
+    assert np.asarray(crops.in_swept_hand_local(wall[None], widths, spec, crops.HAND_SWEEP, crops.HAND_MARGIN)).all()
+    swept = crops.crop_swept_regions(blocked, poses, widths, spec, 4096)
+    assert int(swept.count[0]) == int(crops.crop_regions(blocked, poses, widths, spec, 4096).count[0]) + len(wall)
+
+    for config, crop, changes in (
+        (TINY, crops.crop_regions, False),
+        (ERNetConfig.tiny(hand_points=32), crops.crop_swept_regions, True),
+    ):
+        graphdef, state = nnx.split(ERNet(config, rngs=nnx.Rngs(0)))
+        a, b = (crop(scene, poses, widths, spec, 4096) for scene in (clear, blocked))
+        sa = ernet.score_regions(graphdef, state, a.points, a.mask, widths, spec=spec)
+        sb = ernet.score_regions(graphdef, state, b.points, b.mask, widths, spec=spec)
+        assert bool(sa.valid[0]) and bool(sb.valid[0])
+        assert (abs(float(sa.eval_prob[0]) - float(sb.eval_prob[0])) > 1e-6) == changes
+        inputs = ernet.prepare_inputs(b.points, b.mask, widths, spec, config)
+        assert int(inputs.hand_mask.sum()) == (min(config.hand_points, len(wall)) if changes else 0)
+        # The whole Stage 2 (crop of a shuffled scene, network) runs on either input.
+        assert bool(ernet.score(graphdef, state, blocked, poses, widths, spec=spec).valid[0])

@@ -176,3 +176,34 @@ def test_bad_arguments(setup, tmp_path):
         label(tmp_path, 1, dataclasses.replace(CONFIG, held_out_objects=("ycb/058_golf_ball",)), objects=objects, stage1=stage1.stage1, progress=False)
     with pytest.raises(dataset.DatasetError, match="no labelled shards"):
         summarize(tmp_path)
+
+
+def test_swept_crops_hold_the_region_and_the_hands_path(whole):
+    """The "swept" crop of a sample holds at least the points of its "enlarged" crop (a superset region)."""
+    out, _ = whole
+    enlarged, swept = dataset.read_shards(out, "enlarged"), dataset.read_shards(out, "swept")
+    assert (swept["region_mask"].sum(1) >= enlarged["region_mask"].sum(1)).all()
+    assert (swept["region_mask"].sum(1) > enlarged["region_mask"].sum(1)).any()
+    with pytest.raises(dataset.DatasetError, match="unknown crop 'palm'"):
+        dataset.read_shards(out, "palm")
+
+
+def test_train_and_judge_on_labelled_scenes(whole, tmp_path, capsys):
+    """E-RNet with the swept input trains on label shards; its held-out objects are judged every epoch,
+    and `sgjax score-data` judges the run on the same directory."""
+    from sgjax.stage2.ernet import ERNetConfig
+    from sgjax_cli import main
+    from train import score_data, trainer
+
+    out, summary = whole
+    model = ERNetConfig.tiny(hand_points=16)
+    config = trainer.TrainConfig(epochs=1, batch_size=16, held_out_fraction=0.0, model=model, prefetch=1)
+    result = trainer.train(out, tmp_path / "run", config, progress=False)
+    objects = result.history[-1]["held_out_objects"]["judgement"]
+    assert 0 < objects["samples"] <= summary.held_out_object_samples
+    scored = score_data.score_directory(out, tmp_path / "run")
+    assert scored["held_out_objects"]["judgement"]["samples"] == objects["samples"]
+    assert scored["all"]["judgement"]["samples"] == objects["samples"] + scored["other"]["judgement"]["samples"]
+    assert main(["score-data", "--data", str(out), "--model", str(tmp_path / "run")]) == 0
+    assert "held_out_objects" in capsys.readouterr().out
+    assert main(["score-data", "--data", str(tmp_path / "nowhere"), "--model", str(tmp_path / "run")]) != 0

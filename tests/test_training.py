@@ -145,7 +145,14 @@ def test_training_writes_metrics_curves_and_checkpoints(trained):
     rows = (run / "metrics.csv").read_text().strip().splitlines()
     assert len(rows) == 3 and rows[0].startswith("epoch,train_loss")
     assert (run / "curves.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert (run / "reliability.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert sorted(os.listdir(run / "checkpoints")) == ["1", "2"]
+    # The held-out judgement: computed from the same scores as the summed metrics.
+    judged = trained.history[-1]["held_out"]["judgement"]
+    held = trained.history[-1]["held_out"]
+    assert judged["samples"] == held["samples"] and 0.0 <= judged["auc"] <= 1.0 and 0.0 <= judged["ece"] <= 1.0
+    assert sum(n for _, _, n in judged["reliability"]) == judged["samples"]
+    assert len(judged["refine_auc"]) == 3 and "synthetic" not in judged["auc_per_source"]
     graphdef, _ = nnx.split(trained.model)
     _, train_step, eval_step = trainer.make_steps(graphdef, CONFIG)
     assert train_step._cache_size() == 1 and eval_step._cache_size() == 1  # compiled once
@@ -162,8 +169,8 @@ def test_checkpoint_round_trip(trained, samples):
     batch = jax.device_put(dataset.make_batch(samples, np.arange(16), np.ones(16, np.float32)))
     a = eval_step(state, batch, jax.random.key(0))
     b = eval_step(nnx.state(trained.model), batch, jax.random.key(0))
-    for key in a:
-        np.testing.assert_array_equal(np.asarray(a[key]), np.asarray(b[key]))
+    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
     first, _ = ernet.load_model(trained.run_dir, epoch=1)
     assert not np.array_equal(np.asarray(first.eval_head.layers[0].kernel[...]), np.asarray(model.eval_head.layers[0].kernel[...]))
     with pytest.raises(FileNotFoundError):

@@ -249,7 +249,9 @@ def directory_spec(directory: str | os.PathLike) -> GripperSpec:
         raise DatasetError(f"{path}: no readable stage1.spec ({exc})") from None
 
 
-CROPS = ("enlarged",)  # the Stage-2 inputs a label shard can be cropped to
+# The Stage-2 inputs a label shard can be cropped to: the paper's enlarged region, or that region
+# together with the hand's swept volume (`sgjax.stage2.crops.crop_swept_regions`; E-RNet's hand input).
+CROPS = ("enlarged", "swept")
 CROP_VERSION = 1
 
 
@@ -260,15 +262,16 @@ def _bucket(n: int, least: int) -> int:
 
 def crop_samples(samples: Mapping[str, np.ndarray], clouds: Sequence[np.ndarray], spec: GripperSpec, crop: str = "enlarged") -> Samples:
     """LABEL_FIELDS samples and their scene clouds -> SAMPLE_FIELDS samples with the `crop` input made
-    ("enlarged": the paper's enlarged region, `sgjax.stage2.crops.crop_regions`, REGION_POINTS points)."""
+    (REGION_POINTS points): "enlarged", the paper's enlarged region (`sgjax.stage2.crops.crop_regions`),
+    or "swept", that region and the hand's swept volume (`crop_swept_regions`)."""
     if crop not in CROPS:
         raise DatasetError(f"unknown crop {crop!r}; known: {', '.join(CROPS)}")
-    from sgjax.stage2.crops import crop_regions
+    from sgjax.stage2.crops import crop_regions, crop_swept_regions
 
     n = len(samples["label"])
     region = np.zeros((n, REGION_POINTS, 3), np.float32)
     region_mask = np.zeros((n, REGION_POINTS), bool)
-    fn = _jitted_crop(crop_regions)
+    fn = _jitted_crop(crop_swept_regions if crop == "swept" else crop_regions)
     for row, cloud in enumerate(clouds):
         index = np.flatnonzero(samples["cloud_row"] == row)
         if not len(index):
@@ -295,7 +298,10 @@ def crop_label_shard(path: str | os.PathLike, spec: GripperSpec = DEFAULT_SPEC, 
     """A label shard cropped to `crop` (`crop_samples`), cached beside it in crops/<crop>-v<N>-<spec
     hash>/ (shards never change once written, so a cached crop stays valid)."""
     path = os.fspath(path)
-    key = hashlib.sha256(repr(spec).encode()).hexdigest()[:10]
+    from sgjax.stage2.crops import HAND_MARGIN, HAND_SWEEP
+
+    described = repr(spec) + (f" sweep {HAND_SWEEP} margin {HAND_MARGIN}" if crop == "swept" else "")
+    key = hashlib.sha256(described.encode()).hexdigest()[:10]
     cached = os.path.join(os.path.dirname(path), "crops", f"{crop}-v{CROP_VERSION}-{key}", os.path.basename(path))
     if os.path.exists(cached) and os.path.getmtime(cached) >= os.path.getmtime(path):
         return read_shard(cached)

@@ -69,7 +69,11 @@ def make_steps(graphdef: nnx.GraphDef, config: TrainConfig):
         sums = classification_stats(probability(logits), logits, batch.label, weight, batch.weight, config.threshold)
         return {**sums, "loss": value * sums["n"], "eval_loss": value * sums["n"]}
 
-    return jit_steps(make_optimizer(config), forward, stats, model_config.noise_std)
+    def per_sample(aux):
+        logits, weight = aux
+        return {"prob": probability(logits), "weight": weight}
+
+    return jit_steps(make_optimizer(config), forward, stats, model_config.noise_std, per_sample)
 
 
 def train(

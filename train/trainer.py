@@ -141,12 +141,14 @@ def step_config(config: TrainConfig) -> TrainConfig:
     return dataclasses.replace(config, epochs=1, seed=0, held_out_fraction=0.0, prefetch=1)
 
 
-def jit_steps(tx: optax.GradientTransformation, forward: Callable, stats: Callable, noise_std: float):
+def jit_steps(tx: optax.GradientTransformation, forward: Callable, stats: Callable, noise_std: float, per_sample: Callable | None = None):
     """-> (tx, train_step, eval_step) for any network of this trainer.
 
-    forward(params, batch, key, noise_std) -> (loss, aux); stats(batch, loss, aux) -> dict of sums.
+    forward(params, batch, key, noise_std) -> (loss, aux); stats(batch, loss, aux) -> dict of sums;
+    per_sample(aux) -> {"prob": [B], "weight": [B], optionally "refine_prob": [B, K]} (the judgement
+    metrics' inputs, `train.judgement`).
     train_step(params, opt_state, batch, key) -> (params, opt_state, stats) (params and state donated);
-    eval_step(params, batch, key) -> stats, without input noise.
+    eval_step(params, batch, key) -> stats, without input noise, with stats["per_sample"] when given.
     """
 
     def train_step(params, opt_state, batch, key):
@@ -156,7 +158,8 @@ def jit_steps(tx: optax.GradientTransformation, forward: Callable, stats: Callab
 
     def eval_step(params, batch, key):
         loss, aux = forward(params, batch, key, 0.0)
-        return stats(batch, loss, aux)
+        out = stats(batch, loss, aux)
+        return out if per_sample is None else {**out, "per_sample": per_sample(aux)}
 
     return tx, jax.jit(train_step, donate_argnums=(0, 1)), jax.jit(eval_step)
 
@@ -198,7 +201,11 @@ def make_steps(graphdef: nnx.GraphDef, config: TrainConfig):
         output, parts, weight = aux
         return _batch_stats(output, batch, weight, loss, parts, config.threshold)
 
-    return jit_steps(make_optimizer(config), forward, stats, model_config.noise_std)
+    def per_sample(aux):
+        output, _, weight = aux
+        return {"prob": output.eval_prob, "refine_prob": output.refine_prob, "weight": weight}
+
+    return jit_steps(make_optimizer(config), forward, stats, model_config.noise_std, per_sample)
 
 
 def summarise(stats: Mapping[str, Any]) -> dict[str, Any]:
@@ -274,12 +281,15 @@ class Prefetcher:
 
 
 METRIC_COLUMNS = ("loss", "eval_loss", "refine_loss", "accuracy", "precision", "recall")
+JUDGEMENT_COLUMNS = ("auc", "ece", "collision_score", "top_success")
 
 
 def _csv_text(history: list[dict[str, Any]]) -> str:
     header = ["epoch"]
     for split in ("train", "held_out"):
         header += [f"{split}_{m}" for m in METRIC_COLUMNS] + [f"{split}_refine_accuracy_{v}" for v in range(3)]
+    for split in ("held_out", "held_out_objects"):
+        header += [f"{split}_{m}" for m in JUDGEMENT_COLUMNS]
     out = io.StringIO()
     writer = csv.writer(out)
     writer.writerow(header)
@@ -289,6 +299,9 @@ def _csv_text(history: list[dict[str, Any]]) -> str:
             m = record.get(split) or {}
             row += [m.get(k) for k in METRIC_COLUMNS]
             row += list(m.get("refine_accuracy") or [None] * 3)
+        for split in ("held_out", "held_out_objects"):
+            judged = (record.get(split) or {}).get("judgement") or {}
+            row += [judged.get(k) for k in JUDGEMENT_COLUMNS]
         writer.writerow(["" if v is None else v for v in row])
     return out.getvalue()
 
@@ -336,6 +349,35 @@ def _write_outputs(run_dir: str, history: list[dict[str, Any]], config: TrainCon
     atomic_write_text(os.path.join(run_dir, "metrics.json"), json.dumps(record, indent=1))
     atomic_write_text(os.path.join(run_dir, "metrics.csv"), _csv_text(history))
     plot_curves(history, os.path.join(run_dir, "curves.png"))
+    judged = {split: ((history[-1].get(split) or {}).get("judgement")) for split in ("held_out", "held_out_objects")} if history else {}
+    if any(judged.values()):
+        plot_reliability(judged, os.path.join(run_dir, "reliability.png"))
+
+
+def plot_reliability(judged: Mapping[str, Mapping[str, Any] | None], path: str) -> None:
+    """The reliability diagram of the latest epoch: success rate against mean score per score bin, per
+    split, beside the diagonal of perfect calibration (PNG)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(5, 5))
+    FigureCanvasAgg(fig)
+    ax = fig.subplots()
+    ax.plot([0, 1], [0, 1], ":", color="grey", label="calibrated")
+    for split, metrics in judged.items():
+        if not metrics or not metrics.get("reliability"):
+            continue
+        table = np.asarray(metrics["reliability"], np.float64)
+        ece = metrics.get("ece")
+        ax.plot(table[:, 0], table[:, 1], marker="o", label=f"{split} (ECE {ece:.3f}, AUC {metrics.get('auc') or float('nan'):.3f})")
+    ax.set_xlabel("evaluation score")
+    ax.set_ylabel("success rate")
+    ax.set_xlim(0, 1)
+    ax.set_ylim(0, 1)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=100))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -356,19 +398,25 @@ def _checkpoint_manager(run_dir: str):
     return ocp.CheckpointManager(os.path.abspath(os.path.join(run_dir, CHECKPOINT_DIR)), options=options)
 
 
+EVAL_FIELDS = (*dataset.TRAIN_FIELDS, "source", "outcome", "scene_seed")  # what the judgement metrics need
+
+
 def _load_data(data: str | os.PathLike | Mapping[str, np.ndarray], config: TrainConfig):
-    samples = dataset.read_shards(data) if isinstance(data, (str, os.PathLike)) else dataset.validate(data, "data")
-    # Held-out objects are never trained on (nor mixed into the held-out scenes' metrics).
+    """-> (train set, held-out scenes, held-out objects): columns of the valid samples. Held-out objects
+    are never trained on, nor mixed into the held-out scenes' metrics."""
+    crop = getattr(config.model, "crop", "enlarged")
+    samples = dataset.read_shards(data, crop) if isinstance(data, (str, os.PathLike)) else dataset.validate(data, "data")
+    objects = dataset.select(samples, np.flatnonzero(samples["valid"] & samples["held_out_object"]))
     samples = dataset.select(samples, np.flatnonzero(samples["valid"] & ~samples["held_out_object"]))
     if dataset.num_samples(samples) == 0:
         raise dataset.DatasetError("no valid samples to train on")
     train_index, held_index = dataset.split_by_scene(samples["scene_seed"], config.held_out_fraction, config.seed)
     if len(train_index) == 0:
         raise dataset.DatasetError("every scene fell into the held-out split; lower held_out_fraction")
-    keep = dataset.TRAIN_FIELDS
-    train_set = {k: np.ascontiguousarray(samples[k][train_index]) for k in keep}
-    held_set = {k: np.ascontiguousarray(samples[k][held_index]) for k in keep}
-    return train_set, held_set
+    train_set = {k: np.ascontiguousarray(samples[k][train_index]) for k in dataset.TRAIN_FIELDS}
+    held_set = {k: np.ascontiguousarray(samples[k][held_index]) for k in EVAL_FIELDS}
+    objects_set = {k: np.ascontiguousarray(objects[k]) for k in EVAL_FIELDS}
+    return train_set, held_set, objects_set
 
 
 def train(
@@ -415,7 +463,7 @@ def run_training(
 
     run_dir = os.fspath(run_dir)
     os.makedirs(run_dir, exist_ok=True)
-    train_set, held_set = _load_data(data, config)
+    train_set, held_set, objects_set = _load_data(data, config)
     n_train, n_held = len(train_set["label"]), len(held_set["label"])
 
     graphdef, params = nnx.split(model)
@@ -468,9 +516,11 @@ def run_training(
             finally:
                 bar.close()
                 loader.close()
-            record = {"epoch": epoch + 1, "train": summarise(totals), "held_out": None}
+            record = {"epoch": epoch + 1, "train": summarise(totals), "held_out": None, "held_out_objects": None}
             if n_held:
                 record["held_out"] = evaluate_params(eval_step, params, held_set, config.batch_size, eval_key)
+            if len(objects_set["label"]):
+                record["held_out_objects"] = evaluate_params(eval_step, params, objects_set, config.batch_size, eval_key)
             history.append(record)
             record_meta = {
                 **(meta or {}),
@@ -499,13 +549,44 @@ def run_training(
 
 
 def evaluate_params(eval_step, params, samples: Mapping[str, np.ndarray], batch_size: int, key) -> dict[str, Any]:
-    """Metrics of `params` on preloaded columns (fixed-size padded batches, no noise)."""
-    totals = None
+    """Metrics of `params` on preloaded columns (fixed-size padded batches, no noise): the summed
+    classifier metrics (`summarise`) and, when the step gives per-sample scores, the judgement metrics
+    (`train.judgement.judge`: AUC overall and per source, calibration, collisions' scores, refine AUC,
+    the top-scored grasp per scene) under "judgement"."""
+    totals, parts = None, []
     n = len(samples["label"])
     for i, (index, weight) in enumerate(dataset.batch_indices(n, batch_size, None)):
         stats = eval_step(params, jax.device_put(dataset.make_batch(samples, index, weight)), jax.random.fold_in(key, i))
+        per = stats.pop("per_sample", None)
+        if per is not None:
+            parts.append({k: np.asarray(v)[: min(batch_size, n - i * batch_size)] for k, v in per.items()})
         totals = stats if totals is None else jax.tree.map(jnp.add, totals, stats)
-    return summarise(totals)
+    metrics = summarise(totals)
+    if parts:
+        per = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+        metrics["judgement"] = judge_samples(per, samples)
+    return metrics
+
+
+def judge_samples(per: Mapping[str, np.ndarray], samples: Mapping[str, np.ndarray]) -> dict[str, Any]:
+    """`train.judgement.judge` of per-sample scores over the samples they scored (weight > 0: those
+    with an anchor feature)."""
+    from train.judgement import judge
+    from train.sources import SOURCES
+
+    rows = per["weight"] > 0
+    column = {k: np.asarray(samples[k])[rows] for k in ("source", "outcome", "scene_seed") if k in samples}
+    refine = per.get("refine_prob")
+    return judge(
+        per["prob"][rows],
+        np.asarray(samples["label"])[rows],
+        source=column.get("source"),
+        outcome=column.get("outcome"),
+        scene=column.get("scene_seed"),
+        refine_score=None if refine is None else refine[rows],
+        refine_label=None if refine is None else np.asarray(samples["refine_labels"])[rows],
+        source_names=SOURCES,
+    )
 
 
 def _epoch_line(record: Mapping[str, Any]) -> str:
@@ -518,6 +599,11 @@ def _epoch_line(record: Mapping[str, Any]) -> str:
         line = f"loss {f(m['loss'])} acc {f(m['accuracy'])} P {f(m['precision'])} R {f(m['recall'])}"
         if m.get("refine_accuracy") is not None:
             line += " refine " + "/".join(f(v) for v in m["refine_accuracy"])
+        if m.get("judgement"):
+            line += f" AUC {f(m['judgement'].get('auc'))} ECE {f(m['judgement'].get('ece'))}"
         return line
 
-    return f"epoch {record['epoch']}: train {fmt(record['train'])} | held-out {fmt(record['held_out'])}"
+    line = f"epoch {record['epoch']}: train {fmt(record['train'])} | held-out {fmt(record['held_out'])}"
+    if record.get("held_out_objects"):
+        line += f" | held-out objects {fmt(record['held_out_objects'])}"
+    return line

@@ -30,6 +30,12 @@ from sgjax.geometry.gripper import GripperSpec
 from sgjax.geometry.rotations import points_to_frame
 from sgjax.stage2.pointnet2 import first_set_bits, interleave, pack_interleaved
 
+# The hand's swept volume in E-RNet's "swept" input: the executor's pre-grasp approach runs the last
+# HAND_SWEEP metres straight in (envs TrialConfig.pregrasp_distance), and the boxes are grown by
+# HAND_MARGIN so that a neighbour just outside a finger is seen too.
+HAND_SWEEP = 0.05
+HAND_MARGIN = 0.005
+
 # ---------------------------------------------------------------------------------------------
 # Region tests in the gripper frame.
 
@@ -77,6 +83,19 @@ def in_enlarged_region_local(points: jax.Array, width: jax.Array, spec: GripperS
     Equals `gripper.points_in_enlarged_region` evaluated in the world frame."""
     x, y, z = points[..., 0], points[..., 1], points[..., 2]
     return _in_enlarged(x, y, z, jnp.asarray(width, points.dtype), spec)
+
+
+def in_swept_hand_local(points: jax.Array, width: jax.Array, spec: GripperSpec, sweep: float, margin: float) -> jax.Array:
+    """Gripper-frame points[M, N, 3], width[M] -> bool[M, N]: inside a finger or the palm of the hand
+    open to `width`, grown by `margin` and swept back by `sweep` along -z (the approach's last metres):
+    where a collision on the way in or at the grasp would happen (`gripper.hand_boxes`)."""
+    x, y, z = points[..., 0], points[..., 1], points[..., 2]
+    return _in_swept_hand(x, y, z, jnp.asarray(width, points.dtype)[..., None], spec, sweep, margin)
+
+
+def _in_swept_hand(x, y, z, width, spec: GripperSpec, sweep: float, margin: float):
+    right, left, palm = gripper.hand_boxes(spec, width, margin, sweep)
+    return gripper.in_box(x, y, z, right) | gripper.in_box(x, y, z, left) | gripper.in_box(x, y, z, palm)
 
 
 def _in_enlarged(x, y, z, width, spec: GripperSpec):
@@ -175,6 +194,29 @@ def crop_regions(
     """
     return _crop(scene, poses, widths, n_points, scene_mask,
                  lambda local, w: _in_enlarged(*(c[None] for c in local), w[None], spec)[0])
+
+
+def crop_swept_regions(
+    scene: jax.Array,
+    poses: jax.Array,
+    widths: jax.Array,
+    spec: GripperSpec,
+    n_points: int,
+    scene_mask: jax.Array | None = None,
+    *,
+    sweep: float = HAND_SWEEP,
+    margin: float = HAND_MARGIN,
+) -> Region:
+    """Crop each candidate's enlarged region together with its hand's swept volume (`in_swept_hand_local`)
+    from a world-frame scene cloud, in its gripper frame: E-RNet's input when it also judges collisions.
+
+    scene[N, 3] (world), poses[M, 4, 4], widths[M], scene_mask[N] (None: all) -> Region with P = n_points.
+    """
+    def inside(local, w):
+        x, y, z = (c[None] for c in local)
+        return (_in_enlarged(x, y, z, w[None], spec) | _in_swept_hand(x, y, z, w[None], spec, sweep, margin))[0]
+
+    return _crop(scene, poses, widths, n_points, scene_mask, inside)
 
 
 def crop_closing_regions(

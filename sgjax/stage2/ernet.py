@@ -41,7 +41,16 @@ from sgjax.geometry import gripper
 from sgjax.geometry.gripper import GripperSpec
 from sgjax.stage2 import checkpoint
 from sgjax.stage2.checkpoint import restore_run
-from sgjax.stage2.crops import check_candidates, crop_regions, in_closing_region_local, in_enlarged_region_local
+from sgjax.stage2.crops import (
+    HAND_MARGIN,
+    HAND_SWEEP,
+    check_candidates,
+    crop_regions,
+    crop_swept_regions,
+    in_closing_region_local,
+    in_enlarged_region_local,
+    in_swept_hand_local,
+)
 from sgjax.stage2.pointnet2 import (
     BackboneConfig,
     PointNet2,
@@ -88,6 +97,11 @@ class ERNetConfig:
     noise_std: Gaussian noise (m) added to the points during training (the paper gives no value).
     label_smoothing: epsilon of L_e (paper Eq. for L_e; 0.1).
     lambda_eval, lambda_refine: L = lambda1 L_e + lambda2 L_r (paper: 1, 1).
+    hand_points: 0 (the paper's input: the enlarged region only), or the number of points of the hand's
+        swept volume (fingers and palm, grown by crops.HAND_MARGIN, swept back by crops.HAND_SWEEP along
+        the approach; `crop_swept_regions`) that also go through the backbone; their features are
+        max-pooled into a second feature beside the anchor feature, so that both heads see what the
+        fingers and palm would hit, which the closing region does not contain.
     """
 
     n_points: int = 512
@@ -101,6 +115,7 @@ class ERNetConfig:
     label_smoothing: float = 0.1
     lambda_eval: float = 1.0
     lambda_refine: float = 1.0
+    hand_points: int = 0
 
     def __post_init__(self):
         for name in ("anchor_mlp", "eval_hidden", "refine_hidden"):
@@ -115,6 +130,8 @@ class ERNetConfig:
             raise ValueError("anchor_mlp must be non-empty and both heads need 2 hidden widths (3 layers)")
         if not 0.0 <= self.label_smoothing < 1.0 or self.noise_std < 0:
             raise ValueError("label_smoothing must be in [0, 1) and noise_std >= 0")
+        if self.hand_points < 0:
+            raise ValueError(f"hand_points must be >= 0 (0: the paper's input), got {self.hand_points}")
 
     @classmethod
     def light(cls, **overrides) -> ERNetConfig:
@@ -165,6 +182,22 @@ class ERNetConfig:
     def anchor_dim(self) -> int:
         return self.anchor_mlp[-1]
 
+    @property
+    def head_dim(self) -> int:
+        """The heads' input: the anchor feature, plus the hand feature with the swept input."""
+        return self.anchor_dim * (2 if self.hand_points else 1)
+
+    @property
+    def crop(self) -> str:
+        """The stored crop this network trains on (`train.dataset.CROPS`): "swept" or "enlarged"."""
+        return "swept" if self.hand_points else "enlarged"
+
+    @property
+    def crop_points(self) -> int:
+        """Points cropped per candidate at inference: the swept input crops the union of both regions,
+        twice the points the network keeps, so that a crowded hand volume leaves the region its share."""
+        return 2 * (self.n_points + self.hand_points) if self.hand_points else self.n_points
+
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
 
@@ -198,12 +231,15 @@ class ERNetInputs:
 
     points: [M, n_points, 3] the enlarged-region crop; mask: bool[M, n_points];
     anchor_index: int32[M, n_anchor] rows of `points` inside the initial closing region;
-    anchor_mask: bool[M, n_anchor]."""
+    anchor_mask: bool[M, n_anchor]; hand: [M, hand_points, 3] points of the hand's swept volume outside
+    the enlarged region (hand_points = 0: none); hand_mask: bool[M, hand_points]."""
 
     points: jax.Array
     mask: jax.Array
     anchor_index: jax.Array
     anchor_mask: jax.Array
+    hand: jax.Array
+    hand_mask: jax.Array
 
     @property
     def valid(self) -> jax.Array:
@@ -268,13 +304,25 @@ def prepare_inputs(
     scene is already in random order). Then the first `n_anchor` of those inside the initial closing
     region become the anchor. Fewer points -> masked padding; non-finite points are dropped.
     """
-    points, mask, widths = region_inputs(points, mask, widths, key, noise_std, lambda q, w: in_enlarged_region_local(q, w, spec))
-    crop, keep = first_points(points, mask, config.n_points)
+    def hand(q, w):
+        return in_swept_hand_local(q, w, spec, HAND_SWEEP, HAND_MARGIN)
+
+    def region(q, w):
+        inside = in_enlarged_region_local(q, w, spec)
+        return inside | hand(q, w) if config.hand_points else inside
+
+    points, mask, widths = region_inputs(points, mask, widths, key, noise_std, region)
+    enlarged = in_enlarged_region_local(points, widths, spec) & mask
+    crop, keep = first_points(points, enlarged, config.n_points)
+    if config.hand_points:
+        hand_points, hand_mask = first_points(points, hand(points, widths) & mask & ~enlarged, config.hand_points)
+    else:
+        hand_points, hand_mask = jnp.zeros((*points.shape[:1], 0, 3), points.dtype), jnp.zeros((points.shape[0], 0), bool)
 
     closing = in_closing_region_local(crop, widths, spec) & keep
     anchor_index, anchor_count = first_true_indices(closing, config.n_anchor)
     anchor_mask = jnp.arange(config.n_anchor) < anchor_count[:, None]
-    return ERNetInputs(crop, keep, jnp.where(anchor_mask, anchor_index, 0), anchor_mask)
+    return ERNetInputs(crop, keep, jnp.where(anchor_mask, anchor_index, 0), anchor_mask, hand_points, hand_mask)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -314,16 +362,30 @@ class ERNet(nnx.Module):
         self.config = config
         self.backbone = PointNet2(config.backbone, rngs=rngs)
         self.anchor_mlp = SharedMLP(config.feature_dim, config.anchor_mlp, rngs=rngs)
-        self.eval_head = SharedMLP(config.anchor_dim, (*config.eval_hidden, 2), rngs=rngs, final_relu=False)
+        self.eval_head = SharedMLP(config.head_dim, (*config.eval_hidden, 2), rngs=rngs, final_relu=False)
         self.refine_head = SharedMLP(
-            config.anchor_dim, (*config.refine_hidden, config.n_refinements), rngs=rngs, final_relu=False
+            config.head_dim, (*config.refine_hidden, config.n_refinements), rngs=rngs, final_relu=False
         )
 
     def __call__(self, inputs: ERNetInputs) -> ERNetOutput:
-        # Per-point features N x F, computed only at the anchor rows (identical to cropping them).
-        point_features = self.backbone(inputs.points, inputs.mask, query_index=inputs.anchor_index)
-        anchor = anchor_feature(self.anchor_mlp(point_features), inputs.anchor_mask)
-        return ERNetOutput(self.eval_head(anchor), self.refine_head(anchor))
+        if not self.config.hand_points:
+            # Per-point features N x F, computed only at the anchor rows (identical to cropping them).
+            point_features = self.backbone(inputs.points, inputs.mask, query_index=inputs.anchor_index)
+            feature = anchor_feature(self.anchor_mlp(point_features), inputs.anchor_mask)
+            return ERNetOutput(self.eval_head(feature), self.refine_head(feature))
+        # The region and hand points go through the backbone together (the hand's context reaches the
+        # anchor's features too); features at the anchor rows and at every hand row, pooled apart.
+        n, h = inputs.points.shape[1], inputs.hand.shape[1]
+        points = jnp.concatenate([inputs.points, inputs.hand], axis=1)
+        mask = jnp.concatenate([inputs.mask, inputs.hand_mask], axis=1)
+        hand_rows = jnp.broadcast_to(n + jnp.arange(h, dtype=inputs.anchor_index.dtype), inputs.hand_mask.shape)
+        query = jnp.concatenate([inputs.anchor_index, hand_rows], axis=1)
+        features = self.anchor_mlp(self.backbone(points, mask, query_index=query))
+        a = inputs.anchor_index.shape[1]
+        feature = jnp.concatenate(
+            [anchor_feature(features[:, :a], inputs.anchor_mask), anchor_feature(features[:, a:], inputs.hand_mask)], axis=-1
+        )
+        return ERNetOutput(self.eval_head(feature), self.refine_head(feature))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -490,7 +552,8 @@ def score(
     config: ERNetConfig = model.config
     _check_config(config, spec)
     c = scene_candidates(scene, poses, widths, scene_mask, spec, key)
-    region = crop_regions(c.scene, c.poses, c.widths, spec, config.n_points, c.scene_mask)
+    crop = crop_swept_regions if config.hand_points else crop_regions
+    region = crop(c.scene, c.poses, c.widths, spec, config.crop_points, c.scene_mask)
     inputs = prepare_inputs(region.points, region.mask, c.widths, spec, config)
     return _scores(model, inputs, c.ok, region.count)
 

@@ -1,0 +1,131 @@
+"""How well a grasp scorer judges: ranking, calibration and decisions on labelled samples (plain NumPy).
+
+Computed by `sgjax train` on the held-out scenes and the held-out objects after every epoch, and by
+`sgjax score-data` for any checkpoint on any labelled directory:
+
+  auc                 ROC AUC of the evaluation score against the label (rank statistic, ties halved)
+  auc_per_source      the same within each candidate source (`train.sources.SOURCES`)
+  ece                 expected calibration error over `bins` equal-width score bins
+  reliability         per bin: [mean score, success rate, samples] (the reliability plot's points)
+  collision_score     mean score of grasps whose trial collided (pre-grasp or approach)
+  refine_auc          ROC AUC of each refinement head against its variant's label
+  top_success         per scene, the Stage-1 grasp with the highest score: the share that succeed
+  mean_score / positive_rate: the scorer's mean against the actual success rate
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+
+COLLISIONS = (1, 2)  # envs.rollout.Outcome.COLLISION_PREGRASP, COLLISION_APPROACH
+
+
+def roc_auc(score: np.ndarray, label: np.ndarray) -> float | None:
+    """ROC AUC of scores [N] for binary labels [N] (Mann-Whitney U with average ranks); None when a
+    class is missing."""
+    score = np.asarray(score, np.float64)
+    label = np.asarray(label).astype(bool)
+    n_pos, n_neg = int(label.sum()), int((~label).sum())
+    if n_pos == 0 or n_neg == 0:
+        return None
+    order = np.argsort(score, kind="mergesort")
+    ranks = np.empty(len(score), np.float64)
+    sorted_scores = score[order]
+    # Average ranks over ties (1-based).
+    _, start, counts = np.unique(sorted_scores, return_index=True, return_counts=True)
+    average = start + (counts + 1) / 2.0
+    ranks[order] = np.repeat(average, counts)
+    return float((ranks[label].sum() - n_pos * (n_pos + 1) / 2.0) / (n_pos * n_neg))
+
+
+def reliability(score: np.ndarray, label: np.ndarray, bins: int = 10) -> tuple[float | None, list[list[float]]]:
+    """(expected calibration error, [[mean score, success rate, count] per non-empty bin]) over `bins`
+    equal-width bins of [0, 1]."""
+    score = np.asarray(score, np.float64)
+    label = np.asarray(label, np.float64)
+    if len(score) == 0:
+        return None, []
+    which = np.minimum((score * bins).astype(int), bins - 1)
+    table, error = [], 0.0
+    for b in range(bins):
+        rows = which == b
+        if rows.any():
+            mean, rate, n = float(score[rows].mean()), float(label[rows].mean()), int(rows.sum())
+            table.append([mean, rate, n])
+            error += n * abs(mean - rate)
+    return error / len(score), table
+
+
+def top_success(score: np.ndarray, label: np.ndarray, group: np.ndarray) -> float | None:
+    """Per group (scene), whether the highest-scored sample succeeds: the share that do."""
+    group = np.asarray(group)
+    if len(group) == 0:
+        return None
+    hits = [bool(label[rows][np.argmax(score[rows])]) for rows in (group == g for g in np.unique(group))]
+    return float(np.mean(hits))
+
+
+def judge(
+    score: np.ndarray,
+    label: np.ndarray,
+    *,
+    source: np.ndarray | None = None,
+    outcome: np.ndarray | None = None,
+    scene: np.ndarray | None = None,
+    refine_score: np.ndarray | None = None,
+    refine_label: np.ndarray | None = None,
+    source_names: Sequence[str] = (),
+    top_source: int | None = 0,
+    bins: int = 10,
+) -> dict:
+    """Every metric of the module docstring for scores [N] against labels [N]; the optional columns
+    ([N] each, refine_* [N, K]) enable their metrics. top_source: the source whose grasps compete per
+    scene in top_success (0: Stage 1 as planned; None: all)."""
+    score = np.asarray(score, np.float64)
+    label = np.asarray(label).astype(bool)
+    ece, table = reliability(score, label, bins)
+    out: dict = {
+        "samples": int(len(score)),
+        "auc": roc_auc(score, label),
+        "ece": ece,
+        "reliability": table,
+        "mean_score": float(score.mean()) if len(score) else None,
+        "positive_rate": float(label.mean()) if len(score) else None,
+    }
+    if source is not None:
+        source = np.asarray(source)
+        names = list(source_names) or [str(s) for s in range(int(source.max(initial=-1)) + 1)]
+        out["auc_per_source"] = {
+            names[s]: roc_auc(score[source == s], label[source == s]) for s in np.unique(source) if s < len(names)
+        }
+        out["samples_per_source"] = {names[s]: int((source == s).sum()) for s in np.unique(source) if s < len(names)}
+    if outcome is not None:
+        collided = np.isin(np.asarray(outcome), COLLISIONS)
+        out["collision_score"] = float(score[collided].mean()) if collided.any() else None
+    if scene is not None:
+        rows = np.ones(len(score), bool) if top_source is None or source is None else source == top_source
+        out["top_success"] = top_success(score[rows], label[rows], np.asarray(scene)[rows])
+    if refine_score is not None and refine_label is not None:
+        refine_score, refine_label = np.asarray(refine_score), np.asarray(refine_label)
+        out["refine_auc"] = [roc_auc(refine_score[:, k], refine_label[:, k]) for k in range(refine_score.shape[1])]
+    return out
+
+
+def summary_line(metrics: Mapping) -> str:
+    """One line of the headline numbers."""
+
+    def f(v):
+        return "n/a" if v is None else f"{v:.3f}"
+
+    parts = [f"AUC {f(metrics.get('auc'))}", f"ECE {f(metrics.get('ece'))}"]
+    if "auc_per_source" in metrics:
+        parts.append("per source " + " ".join(f"{k} {f(v)}" for k, v in metrics["auc_per_source"].items()))
+    if "collision_score" in metrics:
+        parts.append(f"collisions scored {f(metrics['collision_score'])}")
+    if "refine_auc" in metrics:
+        parts.append("refine AUC " + "/".join(f(v) for v in metrics["refine_auc"]))
+    if "top_success" in metrics:
+        parts.append(f"top Stage-1 grasp succeeds {f(metrics['top_success'])}")
+    return ", ".join(parts)
