@@ -1,6 +1,6 @@
 """E-RNet (Stage 2) speed on CPU (run by hand; prints markdown tables).
 
-    python benchmarks/bench_ernet.py [--repeats 5] [--configs light paper] [--train-steps 5]
+    python benchmarks/bench_ernet.py [--repeats 5] [--configs light paper light-swept] [--train-steps 5]
 
 Scene: a ~20k-point cluttered tabletop (table plane + single-view clouds of 6 superquadrics, 1 mm
 noise). Candidates: near-top-down grasps on the objects (random tilt <= 30 deg, yaw, width 4-8 cm).
@@ -29,7 +29,12 @@ from sgjax.geometry.superquadric import Superquadric
 from train import dataset, trainer
 
 SPEC = GripperSpec()
-CONFIGS = {"light": ERNetConfig.light, "paper": ERNetConfig.paper}
+CONFIGS = {
+    "light": ERNetConfig.light,
+    "paper": ERNetConfig.paper,
+    "light-swept": lambda: ERNetConfig.light(hand_points=32),  # the swept input (hand feature)
+    "light-swept128": lambda: ERNetConfig.light(hand_points=128),
+}
 
 
 def make_scene(seed: int = 0, n_table: int = 12000, n_per_object: int = 1350, n_objects: int = 6):
@@ -78,7 +83,8 @@ def best_of(fn, repeats: int) -> tuple[float, float]:
 
 def stage_breakdown(model: ERNet, scene, poses, widths, repeats: int) -> dict[str, float]:
     config = model.config
-    crop = jax.jit(lambda s, p, w: crops.crop_regions(s, p, w, SPEC, config.n_points))
+    crop_fn = crops.crop_swept_regions if config.hand_points else crops.crop_regions
+    crop = jax.jit(lambda s, p, w: crop_fn(s, p, w, SPEC, config.crop_points))
     prepare = jax.jit(lambda r, w: ernet.prepare_inputs(r.points, r.mask, w, SPEC, config))
     graphdef, state = nnx.split(model)
     network = jax.jit(lambda st, i: ernet.forward_chunked(nnx.merge(graphdef, st), i))  # as `score` runs it

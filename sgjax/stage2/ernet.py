@@ -195,8 +195,8 @@ class ERNetConfig:
     @property
     def crop_points(self) -> int:
         """Points cropped per candidate at inference: the swept input crops the union of both regions,
-        twice the points the network keeps, so that a crowded hand volume leaves the region its share."""
-        return 2 * (self.n_points + self.hand_points) if self.hand_points else self.n_points
+        with room for twice the hand points, so that a crowded hand volume leaves the region its share."""
+        return self.n_points + 2 * self.hand_points if self.hand_points else self.n_points
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
