@@ -50,6 +50,7 @@ from sgjax.stage2 import ernet
 from sgjax.geometry import gripper, pointcloud
 from sgjax.geometry.gripper import GripperSpec
 from sgjax.stage1.database import PrimitiveDB
+from sgjax.utils.cache import enable_compilation_cache
 from sgjax.stage1.pipeline import Candidates, Stage1, Stage1Config
 from sgjax.stage2.scene_cloud import SceneCloudConfig
 
@@ -339,6 +340,7 @@ class Planner:
     """
 
     def __init__(self, model=None, db: PrimitiveDB | None = None, config: PlannerConfig = PlannerConfig()):
+        enable_compilation_cache()  # a new process loads what an earlier one compiled
         self.model = ernet.as_model(model)
         self.config = config
         if self.model.config.n_refinements != config.spec.num_refinements:

@@ -602,5 +602,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    from sgjax.utils.cache import enable_compilation_cache
+
+    enable_compilation_cache()  # every command is a new process: reuse what earlier ones compiled
     return args.func(args)
 

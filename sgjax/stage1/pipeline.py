@@ -34,6 +34,7 @@ from sgjax.stage1.filters import (
 )
 from sgjax.stage1.ems import EMSConfig, FitResult, _fit_one
 from sgjax.geometry.gripper import GripperSpec, recentre_and_widen, to_gripper_frame
+from sgjax.utils.cache import enable_compilation_cache
 from sgjax.stage1.matching import MatchConfig, MatchDB, match, transfer_grasps
 from sgjax.stage1.database import DBConfig, PrimitiveDB, load_database
 
@@ -207,6 +208,7 @@ class Stage1:
     """Stage 1 with its database on the device. Call it on one object, or `batch` on many."""
 
     def __init__(self, db: PrimitiveDB | None = None, config: Stage1Config = Stage1Config()):
+        enable_compilation_cache()
         self.db = load_database(DBConfig()) if db is None else db
         self.config = config
         self.match_db = MatchDB.from_db(self.db, config.match)
