@@ -240,6 +240,9 @@ def _cmd_label(args: argparse.Namespace) -> int:
             extra["per_source"] = _per_source(args.per_source)
         if args.held_out_objects is not None:
             extra["held_out_objects"] = () if args.held_out_objects in ("", "none") else tuple(args.held_out_objects.split(","))
+        elif args.objects != "seen":  # the default held-out objects are seen-set members
+            extra["held_out_objects"] = ()
+            print(f"no held-out objects in {args.objects!r} (name some with --held-out-objects)", file=sys.stderr)
         config = label.LabelConfig(
             n_objects=args.n_objects, targets_per_scene=args.targets_per_scene, object_set=args.objects, seed=args.seed, **extra
         )
@@ -560,7 +563,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--held-out-objects", default=None, metavar="NAME,...",
-        help="objects never trained on, only in every 20th scene (default: 4 seen objects; 'none' for none)",
+        help="objects never trained on, only in every 20th scene (default: 4 seen objects with --objects seen, "
+        "none otherwise; 'none' for none)",
     )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--small-db", action="store_true", help="the small primitive database (tests, quick runs)")

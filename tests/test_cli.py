@@ -119,3 +119,17 @@ def test_candidates_bad_input_exits_2(tmp_path, capsys):
     main(["example", str(good)])
     assert main(["candidates", str(good), "--db", str(tmp_path / "none.npz")]) == 2
     assert "sgjax build-db" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "options, message",
+    [
+        (["--per-source", "stage1"], "is not SOURCE=COUNT"),
+        (["--per-source", "stage1=4,grasps=2"], "unknown candidate source 'grasps'"),
+        (["--targets-per-scene", "0"], "targets_per_scene must be >= 1"),
+    ],
+)
+def test_label_options_are_checked_before_any_work(tmp_path, capsys, options, message):
+    assert main(["label", "--scenes", "1", "--out", str(tmp_path / "labels"), *options]) != 0
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "labels").exists()
