@@ -50,7 +50,6 @@ included); info carries CGN's own inference time and the counts behind the choic
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import functools
 import json
@@ -306,10 +305,12 @@ class ContactGraspNetMethod:
                 process.wait()
 
     def __del__(self):
-        with contextlib.suppress(Exception):  # at interpreter shutdown, parts may already be gone
+        try:  # at interpreter shutdown, parts (modules included) may already be gone
             self.close()
             self._stderr.close()
             self._dir.cleanup()
+        except Exception:  # noqa: BLE001
+            pass
 
     # -- the method ---------------------------------------------------------------------------
 
