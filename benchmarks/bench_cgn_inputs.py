@@ -1,9 +1,9 @@
 """Contact-GraspNet's input cloud, measured in the decluttering benchmark (by hand; needs its environment).
 
-    python benchmarks/bench_cgn_inputs.py [--inputs crop-grid crop whole] [--setting seen-10] [--scenes 5]
-                                          [--seed 0] [--out bench_cgn_inputs]
+    python benchmarks/bench_cgn_inputs.py [--inputs crop-grid crop whole] [--opening full] [--setting seen-10]
+                                          [--scenes 5] [--seed 0] [--out bench_cgn_inputs]
 
-Runs `contact-graspnet` once per input choice, each into OUT/<input> (a changed method config is refused
+Runs `contact-graspnet` once per input choice, each into OUT/<input>-<opening> (a changed config is refused
 in an existing out directory), on the same scenes (same seed), then prints per choice GSR / TSR / GA,
 the attempts' outcomes (the phase each failure happened in), how the scenes ended and why plans found
 no grasp. Resumable: rerun the same command to continue.
@@ -26,13 +26,13 @@ from eval.contact_graspnet import CGNConfig
 from eval.report import percent
 
 
-def input_config(name: str) -> CGNConfig:
-    """The CGNConfig of an input choice (crop-grid | crop | whole)."""
+def input_config(name: str, opening: str = "full") -> CGNConfig:
+    """The CGNConfig of an input choice (crop-grid | crop | whole) and opening rule (full | predicted)."""
     cloud = stage2_scene_cloud()
     choices = {
-        "crop-grid": CGNConfig(voxel=cloud.voxel, scene_bounds=cloud.bounds),
-        "crop": CGNConfig(voxel=0.0, scene_bounds=cloud.bounds),
-        "whole": CGNConfig(voxel=0.0, scene_bounds=None),
+        "crop-grid": CGNConfig(voxel=cloud.voxel, scene_bounds=cloud.bounds, opening=opening),
+        "crop": CGNConfig(voxel=0.0, scene_bounds=cloud.bounds, opening=opening),
+        "whole": CGNConfig(voxel=0.0, scene_bounds=None, opening=opening),
     }
     if name not in choices:
         raise ValueError(f"unknown input {name!r}; expected one of {', '.join(choices)}")
@@ -57,17 +57,18 @@ def summarise(out: Path) -> dict:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--inputs", nargs="+", default=["crop-grid", "crop", "whole"])
+    parser.add_argument("--opening", default="full", choices=("full", "predicted"))
     parser.add_argument("--setting", default="seen-10")
     parser.add_argument("--scenes", type=int, default=5)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default="bench_cgn_inputs")
     args = parser.parse_args()
     for name in args.inputs:
-        out = Path(args.out) / name
+        out = Path(args.out) / f"{name}-{args.opening}"
         result = run_benchmark("contact-graspnet", setting=args.setting, scenes=args.scenes, seed=args.seed, out=out,
-                               method_options={"config": input_config(name)}, progress=False)
+                               method_options={"config": input_config(name, args.opening)}, progress=False)
         s = result.summary
-        print(f"{name}: GSR {percent(s.gsr)}  TSR {percent(s.tsr)}  GA {s.ga}  ({s.successes} successes, "
+        print(f"{name}, opening {args.opening}: GSR {percent(s.gsr)}  TSR {percent(s.tsr)}  GA {s.ga}  ({s.successes} successes, "
               f"{s.objects} objects, {s.cleared} of {s.scenes} scenes cleared)", flush=True)
         print("  " + json.dumps(summarise(out)), flush=True)
 

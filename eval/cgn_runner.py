@@ -16,7 +16,9 @@ Request (an .npz written by sgjax):
 Reply (an .npz written here), one row per FPS-sampled point (2048), sorted by confidence, best first:
     grasps      float64 [K, 4, 4]  the model's Panda hand poses in the request's frame
     contacts    float64 [K, 3]     the contact points the grasps are built on
-    widths      float64 [K]        the predicted widths (0 .. gripper_width / 2)
+    widths      float64 [K]        the SIGNED widths the hands were placed by (hand = contact - depth z + w/2 x;
+                                   -gripper_width .. gripper_width / 2): the model's own width output is
+                                   relu(w), which loses the side of the contact the hand is on
     confidence  float64 [K]        sigmoid of the model's score
     on_object   bool    [K]        obj_mask at the contact point
     inference_s float              wall seconds of the forward pass alone
@@ -96,10 +98,15 @@ def predict(model, points: np.ndarray, obj_mask: np.ndarray, gripper_width: floa
     if contacts.shape != sampled.shape or not np.allclose(contacts, sampled, atol=1e-6):
         # The object flags are read at the FPS indices: that needs the model's outputs in their order.
         raise RuntimeError("the model's contact points are not the FPS-sampled input points in order")
+    grasps = _numpy(grasps).reshape(-1, 4, 4).astype(np.float64)
+    # The signed width, read off the hand the model built: (hand + depth z - contact) . x = w / 2.
+    signed = 2.0 * np.sum((grasps[:, :3, 3] + gripper_depth * grasps[:, :3, 2] - contacts) * grasps[:, :3, 0], axis=1)
+    if not np.allclose(np.maximum(signed, 0.0), _numpy(widths).reshape(-1), atol=1e-5):
+        raise RuntimeError("the model's widths are not relu of the offsets its hands were placed by")
     return {
-        "grasps": _numpy(grasps).reshape(-1, 4, 4).astype(np.float64),
+        "grasps": grasps,
         "contacts": contacts,
-        "widths": _numpy(widths).reshape(-1).astype(np.float64),
+        "widths": signed,
         "confidence": _numpy(torch.sigmoid(score)).reshape(-1).astype(np.float64),
         "on_object": obj_mask[_numpy(idx)] > 0.5,
     }

@@ -30,12 +30,18 @@ The conversion (checked against the wheel's source, cgn_pytorch/contact_graspnet
         centre  = c + offset + (w / 2) x                       (the middle of the contact baseline)
         t_sgjax = centre + (0.112204 - 0.1034 - finger_length) z
 
-  * Width: `cgn_pytorch.inference()` calls the model with gripper_width=0.08, and `CGN.forward` clamps
-    the predicted width to gripper_width / 2 = 4 cm *before* placing the hand, so wider grasps come
-    back off-centre towards the contact finger; its training used forward's default 0.16 (clamp at
-    the 8 cm stroke). The runner therefore calls the model itself with 0.16 and returns the contacts
-    and widths, and the pose is rebuilt from them as above.
-  * Opening: as NVlabs' original (TEST.extra_opening), the hand opens to min(w + 5 mm, stroke).
+  * Width and centring: `cgn_pytorch.inference()` calls the model with gripper_width=0.08, and
+    `CGN.forward` clamps the predicted width w to [-gripper_width, gripper_width / 2] = [-8, 4] cm
+    *before* placing the hand at c + (w / 2) x, then returns relu(w); its training used forward's
+    default 0.16 (clamp [-16, 8] cm). The width is SIGNED: its pose loss (ADD-S against the symmetric
+    gripper) cannot tell (x, w) from (-x, -w), and 62 % of the confident grasps on seen-10 scenes have
+    w < 0, the hand -- and the object, 88 % of the time -- on the -x side of the contact. The runner
+    calls the model with 0.16 and returns the contacts and the signed widths (read off the hand poses);
+    the closing region is centred between c and c + w x.
+  * Opening: NVlabs' original opens to the predicted width + 5 mm (TEST.extra_opening), at most the
+    stroke (CGNConfig.opening "predicted"). cgn-pytorch 0.4.3's |w| are far too small for that (median
+    ~2 cm; a finger lands on the observed target in 95 % of its confident grasps), so by default the
+    hand opens fully ("full"; finger on the target in 20 %), measured in docs/benchmark.md.
   * Table: CGN's training scenes were collision-checked with the table lowered 2 cm (NVlabs'
     tools/create_table_top_scenes.py, TableScene(lower_table=0.02)), so slight table contact counts as
     positive; this harness fails any table contact. Like the GPD baseline, grasps whose open hand
@@ -89,7 +95,9 @@ class CGNConfig:
     grid), then a seeded subsample); the method's factory sets the default input (docs/benchmark.md);
     contact_depth / tip_depth: the Panda hand frame to its contact baseline / fingertips (m);
     gripper_width: the width the model is called with (it clamps widths at half of it);
-    extra_opening: open this much wider than the predicted width (at most the stroke);
+    extra_opening: with opening "predicted", open this much wider than the predicted width;
+    opening: "full" -- the stroke -- or "predicted" -- min(|w| + extra_opening, stroke), NVlabs' rule;
+        cgn-pytorch 0.4.3's widths are too small for it (docs/benchmark.md), hence "full";
     table_clearance: the open hand's lowest point at least this far above the observed table (m; GPD's);
     timeout_s: per request (the first includes loading the model); spec: the sgjax gripper."""
 
@@ -102,6 +110,7 @@ class CGNConfig:
     gripper_width: float = CGN_GRIPPER_WIDTH
     extra_opening: float = EXTRA_OPENING
     table_clearance: float = 0.003
+    opening: str = "full"
     timeout_s: float = 600.0
     spec: GripperSpec = dataclasses.field(default_factory=GripperSpec)
 
@@ -112,6 +121,8 @@ class CGNConfig:
             raise ValueError(f"CGNConfig.max_points must be >= 2048, got {self.max_points}")
         if self.voxel < 0 or self.extra_opening < 0 or self.gripper_width <= 0:
             raise ValueError("CGNConfig.voxel and extra_opening must be >= 0 and gripper_width > 0")
+        if self.opening not in ("full", "predicted"):
+            raise ValueError(f"CGNConfig.opening must be 'full' or 'predicted', got {self.opening!r}")
         if not 0 < self.contact_depth <= self.tip_depth:
             raise ValueError(f"CGNConfig needs 0 < contact_depth <= tip_depth, got {self.contact_depth}, {self.tip_depth}")
 
@@ -170,23 +181,24 @@ def cgn_to_sgjax(grasps: np.ndarray, contacts: np.ndarray, widths: np.ndarray, o
                  contact_depth: float = PANDA_CONTACT_DEPTH, tip_depth: float = PANDA_TIP_DEPTH,
                  extra_opening: float = EXTRA_OPENING) -> tuple[np.ndarray, np.ndarray]:
     """CGN predictions -> sgjax grasps (module doc): grasps [K, 4, 4] (only their rotations are used: x the
-    closing axis, z the approach), contacts [K, 3] and predicted widths [K], in a frame shifted by -offset
-    [3] -> (poses [K, 4, 4] in the world, opening widths [K]). The closing region is centred between the
-    contact c and c + w x, the fingertips lie tip_depth - contact_depth beyond the contact baseline, and
-    the hand opens to min(w + extra_opening, spec.max_opening)."""
+    closing axis, z the approach), contacts [K, 3] and SIGNED widths [K] (the hand lies at contact +
+    w/2 x; a negative w puts it on the -x side), in a frame shifted by -offset [3] -> (poses [K, 4, 4] in
+    the world, opening widths [K]). The closing region is centred between the contact c and c + w x, the
+    fingertips lie tip_depth - contact_depth beyond the contact baseline, and the hand opens to
+    min(|w| + extra_opening, spec.max_opening)."""
     rotation = _rotations(grasps)
     contacts = np.asarray(contacts, np.float64).reshape(-1, 3)
     widths = np.asarray(widths, np.float64).reshape(-1)
     if not len(rotation) == len(contacts) == len(widths):
         raise ValueError(f"got {len(rotation)} grasps, {len(contacts)} contacts and {len(widths)} widths")
-    if not (np.isfinite(contacts).all() and np.isfinite(widths).all() and (widths >= 0).all()):
-        raise ValueError("contacts and widths must be finite and widths >= 0")
+    if not (np.isfinite(contacts).all() and np.isfinite(widths).all()):
+        raise ValueError("contacts and widths must be finite")
     x, z = rotation[:, :, 0], rotation[:, :, 2]
     centre = contacts + np.asarray(offset, np.float64) + 0.5 * widths[:, None] * x
     out = np.tile(np.eye(4), (len(rotation), 1, 1))
     out[:, :3, :3] = rotation
     out[:, :3, 3] = centre + (tip_depth - contact_depth - spec.finger_length) * z
-    return out, np.minimum(widths + extra_opening, spec.max_opening)
+    return out, np.minimum(np.abs(widths) + extra_opening, spec.max_opening)
 
 
 def table_height(points: np.ndarray, labels: np.ndarray) -> float:
@@ -353,6 +365,8 @@ class ContactGraspNetMethod:
         zero = np.zeros(3)
         poses, widths = cgn_to_sgjax(pred["grasps"], pred["contacts"], pred["widths"], zero, cfg.spec,
                                      cfg.contact_depth, cfg.tip_depth, cfg.extra_opening)
+        if cfg.opening == "full":
+            widths = np.full_like(widths, cfg.spec.max_opening)
         best, reason, counts = choose(poses, widths, pred["confidence"], pred["on_object"], table_z, cfg, avoid)
         elapsed = time.perf_counter() - start
         info.update(counts, inference_s=pred["inference_s"])

@@ -377,12 +377,13 @@ def _cgn_hand(rotation, contact, width, depth=contact_graspnet.PANDA_CONTACT_DEP
 
 def test_contact_graspnet_conversion_geometry():
     """Fingertips on the Panda's fingertip line (0.112204 - 0.1034 m beyond the contact baseline), the
-    closing region centred between the two contacts, the hand open to min(w + 5 mm, stroke)."""
+    closing region centred between the two contacts (the width is signed: w < 0 puts the hand on the
+    contact's -x side), the hand open to min(|w| + 5 mm, stroke)."""
     rng = np.random.default_rng(3)
     rotations = np.stack([np.linalg.qr(rng.normal(size=(3, 3)))[0] for _ in range(5)])
     rotations[:, :, 2] *= np.sign(np.linalg.det(rotations))[:, None]  # proper rotations
     contacts = rng.uniform(-0.1, 0.1, (5, 3))
-    widths = np.array([0.0, 0.02, 0.05, 0.075, 0.08])
+    widths = np.array([0.0, 0.02, -0.05, 0.075, -0.08])
     offset = np.array([0.3, -0.2, 0.1])
     hands = np.stack([_cgn_hand(r, c, w) for r, c, w in zip(rotations, contacts, widths)])
     poses, opening = contact_graspnet.cgn_to_sgjax(hands, contacts, widths, offset, SPEC)
@@ -392,19 +393,19 @@ def test_contact_graspnet_conversion_geometry():
     for pose, c, w, width in zip(poses, contacts + offset, widths, opening):
         other = c + w * pose[:3, 0]  # the second contact, across the predicted width
         local = (np.stack([c, other]) - pose[:3, 3]) @ pose[:3, :3]  # gripper frame
-        # Centred: the contacts at x = -+w/2 on the closing axis, on the centre plane y = 0 ...
+        # Centred: the contacts at x = -+w/2 on the closing axis (on either side), on the plane y = 0 ...
         np.testing.assert_allclose(local[:, 0], [-w / 2, w / 2], atol=1e-12)
         np.testing.assert_allclose(local[:, 1], 0.0, atol=1e-12)
         # ... and 8.8 mm behind the fingertips (z = finger_length), inside the open hand's closing region.
         np.testing.assert_allclose(local[:, 2], SPEC.finger_length - beyond, atol=1e-12)
-        if width > w:  # (at w = stroke the contacts lie on the fingers' faces)
+        if width > abs(w):  # (at |w| = stroke the contacts lie on the fingers' faces)
             assert np.asarray(gripper.points_in_closing_region(np.stack([c, other]), pose, width, SPEC)).all()
         # The Panda hand frame maps to the same place: its fingertip line is ours.
         hand = _cgn_hand(pose[:3, :3], c, w)
         panda_tips = hand[:3, 3] + 0.112204 * hand[:3, 2]
         np.testing.assert_allclose(pose[:3, 3] + SPEC.finger_length * pose[:3, 2], panda_tips, atol=1e-12)
-    with pytest.raises(ValueError, match="widths must be finite and widths >= 0"):
-        contact_graspnet.cgn_to_sgjax(hands[:1], contacts[:1], [-0.01], offset, SPEC)
+    with pytest.raises(ValueError, match="contacts and widths must be finite"):
+        contact_graspnet.cgn_to_sgjax(hands[:1], contacts[:1], [np.nan], offset, SPEC)
     with pytest.raises(ValueError, match="got 5 grasps, 5 contacts and 4 widths"):
         contact_graspnet.cgn_to_sgjax(hands, contacts, widths[:4], offset, SPEC)
 
@@ -441,14 +442,17 @@ def test_contact_graspnet_chooses_the_most_confident_grasp_clear_of_the_table():
     table = np.c_[np.zeros((5, 2)), [0.0, 0.001, -0.001, 0.0, 0.002]]
     assert contact_graspnet.table_height(np.r_[table, [[0, 0, 0.05]]], [-1] * 5 + [0]) == 0.0
     assert contact_graspnet.table_height(table, [0] * 5) == -np.inf
+    with pytest.raises(ValueError, match="CGNConfig.opening must be 'full' or 'predicted', got 'wide'"):
+        contact_graspnet.CGNConfig(opening="wide")
 
 
 @pytest.mark.skipif(contact_graspnet.missing() is not None,
                     reason="Contact-GraspNet's environment is not set up: run `sgjax baselines setup contact-graspnet`")
 def test_contact_graspnet_real_inference_on_a_small_cloud(observation):
     """The real cgn-pytorch model out of process on a rendered tiny scene: the runner's replies follow
-    the model's own geometry (hand = contact - 0.1034 z + w/2 x, widths within the 8 cm stroke), and the
-    executed grasp is converted and chosen by the rules, repeatably."""
+    the model's own geometry (hand = contact - 0.1034 z + w/2 x with the signed width w clamped to
+    [-16, 8] cm, the model called with gripper_width 0.16), and the executed grasp is converted and chosen
+    by the rules, repeatably."""
     points, labels, view = observation
     keep = np.random.default_rng(0).choice(len(points), 20000, replace=False)
     method = make_method("contact-graspnet", config=contact_graspnet.CGNConfig(voxel=0.0))
@@ -463,19 +467,19 @@ def test_contact_graspnet_real_inference_on_a_small_cloud(observation):
     shift = raw["grasps"][:, :3, 3] - (raw["contacts"] - 0.1034 * z)  # the hand's offset from the contact
     along = np.sum(shift * x, axis=1)
     np.testing.assert_allclose(shift, along[:, None] * x, atol=1e-5)  # along the closing axis only ...
-    np.testing.assert_allclose(along[w > 0], w[w > 0] / 2, atol=1e-5)  # ... by half the (positive) width
-    assert 0.0 <= w.min() and w.max() <= 0.08 + 1e-6
+    np.testing.assert_allclose(along, w / 2, atol=1e-5)  # ... by half the signed width
+    assert -0.16 - 1e-6 <= w.min() and w.max() <= 0.08 + 1e-6
     on = raw["contacts"][raw["on_object"]]  # object flags: the contacts are object points
     assert len(on) and np.linalg.norm(on[:, None] - points[labels >= 0][None], axis=-1).min(1).max() < 1e-5
     assert decision.pose is not None, decision.reason
     np.testing.assert_allclose(again.pose, decision.pose)
     info = decision.info
     assert info["grasps"] >= 1 and decision.score > 0.5 and abs(info["table_z"]) < 0.002
-    # The executed grasp: its contact baseline centred, 8.8 mm behind the fingertips, open w + 5 mm.
+    # The executed grasp: its contact baseline centred, 8.8 mm behind the fingertips, the hand fully open.
     contact, w = np.asarray(info["contact"]), info["predicted_width"]
     centre = decision.pose[:3, 3] + (SPEC.finger_length - (0.112204 - 0.1034)) * decision.pose[:3, 2]
     np.testing.assert_allclose(centre, contact + 0.5 * w * decision.pose[:3, 0], atol=1e-9)
-    assert decision.width == pytest.approx(min(w + 0.005, SPEC.max_opening))
+    assert decision.width == SPEC.max_opening
     assert contact_graspnet.clears_table(decision.pose[None], [decision.width], info["table_z"], SPEC, 0.003).all()
     check_grasp(decision, points, labels)
 
