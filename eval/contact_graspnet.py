@@ -35,13 +35,13 @@ The conversion (checked against the wheel's source, cgn_pytorch/contact_graspnet
     *before* placing the hand at c + (w / 2) x, then returns relu(w); its training used forward's
     default 0.16 (clamp [-16, 8] cm). The width is SIGNED: its pose loss (ADD-S against the symmetric
     gripper) cannot tell (x, w) from (-x, -w), and 62 % of the confident grasps on seen-10 scenes have
-    w < 0, the hand -- and the object, 88 % of the time -- on the -x side of the contact. The runner
+    w < 0, and the object lies on the hand's side of the contact in 88 % of them (by relu(w): 40 %). The runner
     calls the model with 0.16 and returns the contacts and the signed widths (read off the hand poses);
     the closing region is centred between c and c + w x.
   * Opening: NVlabs' original opens to the predicted width + 5 mm (TEST.extra_opening), at most the
     stroke (CGNConfig.opening "predicted"). cgn-pytorch 0.4.3's |w| are far too small for that (median
-    ~2 cm; a finger lands on the observed target in 95 % of its confident grasps), so by default the
-    hand opens fully ("full"; finger on the target in 20 %), measured in docs/benchmark.md.
+    1.7 cm; a finger box holds observed target points in 96 % of its confident grasps), so by default the
+    hand opens fully ("full": 20 %); benchmarks/bench_cgn_widths.py, docs/benchmark.md.
   * Table: CGN's training scenes were collision-checked with the table lowered 2 cm (NVlabs'
     tools/create_table_top_scenes.py, TableScene(lower_table=0.02)), so slight table contact counts as
     positive; this harness fails any table contact. Like the GPD baseline, grasps whose open hand
