@@ -26,13 +26,13 @@ from eval.contact_graspnet import CGNConfig
 from eval.report import percent
 
 
-def input_config(name: str, opening: str = "full") -> CGNConfig:
+def input_config(name: str, opening: str = "full", backoff: float = 0.0) -> CGNConfig:
     """The CGNConfig of an input choice (crop-grid | crop | whole) and opening rule (full | predicted)."""
     cloud = stage2_scene_cloud()
     choices = {
-        "crop-grid": CGNConfig(voxel=cloud.voxel, scene_bounds=cloud.bounds, opening=opening),
-        "crop": CGNConfig(voxel=0.0, scene_bounds=cloud.bounds, opening=opening),
-        "whole": CGNConfig(voxel=0.0, scene_bounds=None, opening=opening),
+        "crop-grid": CGNConfig(voxel=cloud.voxel, scene_bounds=cloud.bounds, opening=opening, table_backoff=backoff),
+        "crop": CGNConfig(voxel=0.0, scene_bounds=cloud.bounds, opening=opening, table_backoff=backoff),
+        "whole": CGNConfig(voxel=0.0, scene_bounds=None, opening=opening, table_backoff=backoff),
     }
     if name not in choices:
         raise ValueError(f"unknown input {name!r}; expected one of {', '.join(choices)}")
@@ -58,17 +58,18 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--inputs", nargs="+", default=["crop-grid", "crop", "whole"])
     parser.add_argument("--opening", default="full", choices=("full", "predicted"))
+    parser.add_argument("--backoff", type=float, default=0.0, help="CGNConfig.table_backoff (m)")
     parser.add_argument("--setting", default="seen-10")
     parser.add_argument("--scenes", type=int, default=5)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default="bench_cgn_inputs")
     args = parser.parse_args()
     for name in args.inputs:
-        out = Path(args.out) / f"{name}-{args.opening}"
+        out = Path(args.out) / (f"{name}-{args.opening}" + (f"-backoff{args.backoff:g}" if args.backoff else ""))
         result = run_benchmark("contact-graspnet", setting=args.setting, scenes=args.scenes, seed=args.seed, out=out,
-                               method_options={"config": input_config(name, args.opening)}, progress=False)
+                               method_options={"config": input_config(name, args.opening, args.backoff)}, progress=False)
         s = result.summary
-        print(f"{name}, opening {args.opening}: GSR {percent(s.gsr)}  TSR {percent(s.tsr)}  GA {s.ga}  ({s.successes} successes, "
+        print(f"{name}, opening {args.opening}, backoff {args.backoff:g}: GSR {percent(s.gsr)}  TSR {percent(s.tsr)}  GA {s.ga}  ({s.successes} successes, "
               f"{s.objects} objects, {s.cleared} of {s.scenes} scenes cleared)", flush=True)
         print("  " + json.dumps(summarise(out)), flush=True)
 

@@ -98,6 +98,8 @@ class CGNConfig:
     extra_opening: with opening "predicted", open this much wider than the predicted width;
     opening: "full" -- the stroke -- or "predicted" -- min(|w| + extra_opening, stroke), NVlabs' rule;
         cgn-pytorch 0.4.3's widths are too small for it (docs/benchmark.md), hence "full";
+    table_backoff: grasps too low for the table are first moved back along their approach by up to this
+        much (m; 0: only dropped);
     table_clearance: the open hand's lowest point at least this far above the observed table (m; GPD's);
     timeout_s: per request (the first includes loading the model); spec: the sgjax gripper."""
 
@@ -110,6 +112,7 @@ class CGNConfig:
     gripper_width: float = CGN_GRIPPER_WIDTH
     extra_opening: float = EXTRA_OPENING
     table_clearance: float = 0.003
+    table_backoff: float = 0.0
     opening: str = "full"
     timeout_s: float = 600.0
     spec: GripperSpec = dataclasses.field(default_factory=GripperSpec)
@@ -216,6 +219,24 @@ def clears_table(poses: np.ndarray, widths: np.ndarray, table_z: float, spec: Gr
         return np.ones(len(poses), bool)
     plane = np.array([0.0, 0.0, 1.0, -table_z])
     return np.asarray(lowest_height(np.asarray(poses, np.float32), np.asarray(widths, np.float32), spec, plane)) >= clearance
+
+
+def back_off(poses: np.ndarray, widths: np.ndarray, table_z: float, spec: GripperSpec, clearance: float,
+             max_shift: float) -> np.ndarray:
+    """Grasps too close to the table moved back along their approach axis until the open hand clears it by
+    `clearance`, by at most max_shift (m): poses [K, 4, 4], widths [K] -> poses [K, 4, 4] (a copy; those
+    that need more, or approach upwards, are left where they are). CGN's training counted grasps that
+    touch a table lowered by 2 cm as positives; backing off by up to that much is the same grasp, shallower."""
+    poses = np.array(poses, np.float64)
+    if max_shift <= 0 or not np.isfinite(table_z) or len(poses) == 0:
+        return poses
+    plane = np.array([0.0, 0.0, 1.0, -table_z])
+    low = clearance - np.asarray(lowest_height(poses.astype(np.float32), np.asarray(widths, np.float32), spec, plane), np.float64)
+    down = -poses[:, 2, 2]  # how fast backing off raises the hand: -z_world of the approach axis
+    shift = np.where(down > 1e-3, (low + 1e-4) / np.maximum(down, 1e-3), np.inf)
+    move = (low > 0) & (shift <= max_shift)
+    poses[move, :3, 3] -= shift[move, None] * poses[move, :3, 2]
+    return poses
 
 
 def choose(poses: np.ndarray, widths: np.ndarray, confidence: np.ndarray, on_object: np.ndarray, table_z: float,
@@ -367,6 +388,7 @@ class ContactGraspNetMethod:
                                      cfg.contact_depth, cfg.tip_depth, cfg.extra_opening)
         if cfg.opening == "full":
             widths = np.full_like(widths, cfg.spec.max_opening)
+        poses = back_off(poses, widths, table_z, cfg.spec, cfg.table_clearance, cfg.table_backoff)
         best, reason, counts = choose(poses, widths, pred["confidence"], pred["on_object"], table_z, cfg, avoid)
         elapsed = time.perf_counter() - start
         info.update(counts, inference_s=pred["inference_s"])

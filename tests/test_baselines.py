@@ -18,6 +18,7 @@ from flax import nnx
 
 from envs.camera import CameraConfig, observe
 from envs.objects import tiny_object_set
+from envs.scene import workspace_bounds
 from eval import baselines, cgn_setup, contact_graspnet
 from eval.declutter import (
     DeclutterConfig,
@@ -35,6 +36,7 @@ from sgjax.stage2.ernet import ERNet, ERNetConfig
 from sgjax.stage2.scene_cloud import SceneCloudConfig
 from sgjax.geometry.gripper import GripperSpec
 from train import dataset
+from train.label import LabelConfig
 from train import train_pointnetgpd as tp
 
 SPEC = GripperSpec()
@@ -442,6 +444,17 @@ def test_contact_graspnet_chooses_the_most_confident_grasp_clear_of_the_table():
     table = np.c_[np.zeros((5, 2)), [0.0, 0.001, -0.001, 0.0, 0.002]]
     assert contact_graspnet.table_height(np.r_[table, [[0, 0, 0.05]]], [-1] * 5 + [0]) == 0.0
     assert contact_graspnet.table_height(table, [0] * 5) == -np.inf
+    # Backing off along the approach (CGNConfig.table_backoff): a top-down grasp 5 mm too low moves up
+    # until it clears; the side grasp (approach horizontal) cannot, nor a grasp that needs more than allowed.
+    lowered = poses.copy()
+    lowered[0, 2, 3] -= heights[0] + 0.002  # its lowest point 2 mm below the table top
+    moved = contact_graspnet.back_off(lowered, opening, 0.0, SPEC, 0.003, 0.02)
+    np.testing.assert_allclose(moved[1:3], lowered[1:3])  # the side grasp; the one clear of the table
+    np.testing.assert_allclose(moved[0, :3, :3], lowered[0, :3, :3])
+    assert moved[0, 2, 3] - lowered[0, 2, 3] == pytest.approx(0.005, abs=2e-4)
+    assert contact_graspnet.clears_table(moved[[0, 2, 3]], opening[[0, 2, 3]], 0.0, SPEC, 0.003).all()
+    kept = contact_graspnet.back_off(lowered, opening, 0.0, SPEC, 0.003, 0.004)  # the first needs 5 mm
+    np.testing.assert_allclose(kept[:3], lowered[:3])
     with pytest.raises(ValueError, match="CGNConfig.opening must be 'full' or 'predicted', got 'wide'"):
         contact_graspnet.CGNConfig(opening="wide")
 
@@ -454,6 +467,9 @@ def test_contact_graspnet_real_inference_on_a_small_cloud(observation):
     [-16, 8] cm, the model called with gripper_width 0.16), and the executed grasp is converted and chosen
     by the rules, repeatably."""
     points, labels, view = observation
+    default = make_method("contact-graspnet").config  # the measured defaults (docs/benchmark.md)
+    assert default.scene_bounds == workspace_bounds(LabelConfig().scene, LabelConfig().workspace_margin)
+    assert (default.voxel, default.opening, default.threshold) == (0.003, "full", 0.5)
     keep = np.random.default_rng(0).choice(len(points), 20000, replace=False)
     method = make_method("contact-graspnet", config=contact_graspnet.CGNConfig(voxel=0.0))
     try:
