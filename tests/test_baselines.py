@@ -469,7 +469,7 @@ def test_contact_graspnet_real_inference_on_a_small_cloud(observation):
     points, labels, view = observation
     default = make_method("contact-graspnet").config  # the measured defaults (docs/benchmark.md)
     assert default.scene_bounds == workspace_bounds(LabelConfig().scene, LabelConfig().workspace_margin)
-    assert (default.voxel, default.opening, default.threshold) == (0.003, "full", 0.5)
+    assert (default.voxel, default.opening, default.threshold, default.table_backoff) == (0.003, "full", 0.5, 0.02)
     keep = np.random.default_rng(0).choice(len(points), 20000, replace=False)
     method = make_method("contact-graspnet", config=contact_graspnet.CGNConfig(voxel=0.0))
     try:
@@ -494,7 +494,10 @@ def test_contact_graspnet_real_inference_on_a_small_cloud(observation):
     # The executed grasp: its contact baseline centred, 8.8 mm behind the fingertips, the hand fully open.
     contact, w = np.asarray(info["contact"]), info["predicted_width"]
     centre = decision.pose[:3, 3] + (SPEC.finger_length - (0.112204 - 0.1034)) * decision.pose[:3, 2]
-    np.testing.assert_allclose(centre, contact + 0.5 * w * decision.pose[:3, 0], atol=1e-9)
+    gap = contact + 0.5 * w * decision.pose[:3, 0] - centre  # 0, or backed off along the approach (<= 2 cm)
+    back = gap @ decision.pose[:3, 2]
+    np.testing.assert_allclose(gap, back * decision.pose[:3, 2], atol=1e-9)
+    assert -1e-9 <= back <= 0.02 + 1e-9
     assert decision.width == SPEC.max_opening
     assert contact_graspnet.clears_table(decision.pose[None], [decision.width], info["table_z"], SPEC, 0.003).all()
     check_grasp(decision, points, labels)
