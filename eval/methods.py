@@ -98,7 +98,7 @@ def _gpd_s2(model=None, config=None) -> Method:
 def _contact_graspnet(config=None) -> Method:
     from eval.contact_graspnet import CGNConfig, ContactGraspNetMethod
 
-    if config is None:  # the benchmark's workspace, cropped as for SuperGrasp's scene cloud
+    if config is None:  # the workspace crop on a 3 mm grid, as SuperGrasp's cloud: measured best (docs/benchmark.md)
         from envs.scene import stage2_scene_cloud
 
         cloud = stage2_scene_cloud()

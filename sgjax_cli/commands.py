@@ -427,6 +427,24 @@ def _cmd_declutter(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_baselines_setup(args: argparse.Namespace) -> int:
+    from eval import cgn_setup
+
+    prefix = args.prefix if args.prefix else cgn_setup.default_prefix()
+    try:
+        record = cgn_setup.setup(prefix, python=args.python, torch_index=args.torch_index, max_jobs=args.jobs)
+    except (cgn_setup.SetupError, ValueError) as exc:
+        return _fail(str(exc), code=1)
+    except KeyboardInterrupt:
+        print(f"\ninterrupted: rerun `{cgn_setup.COMMAND}` with the same --prefix to resume", file=sys.stderr)
+        return 130
+    if cgn_setup.installed_python() is not None and os.path.samefile(record["python"], cgn_setup.installed_python()):
+        print("sgjax declutter --method contact-graspnet finds this environment by default")
+    else:
+        print(f"not the default location: export SGJAX_CGN_PYTHON={record['python']} for sgjax declutter to use it")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="sgjax", description="SuperGrasp in JAX + MuJoCo")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -601,6 +619,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help='print {"GSR", "TSR", "GA", "scenes", ...} as JSON')
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_declutter)
+
+    baselines_parser = sub.add_parser("baselines", help="set up the environments of out-of-process baselines")
+    baselines_sub = baselines_parser.add_subparsers(dest="baselines_command", required=True)
+    p = baselines_sub.add_parser(
+        "setup", help="create a baseline's own Python environment from PyPI (safe to rerun: resumes, skips what is there)",
+        description="Create Contact-GraspNet's environment (python3.11 venv: torch 2.13.0 CPU, numpy<2, "
+        "torch-geometric 2.4.0, torch-cluster 1.6.3 built from source, cgn-pytorch 0.4.3), then check that it "
+        "loads its checkpoint. Takes ~15 min on 2 cores, most of it building torch-cluster.",
+    )
+    p.add_argument("baseline", choices=("contact-graspnet",), help="the baseline to set up")
+    p.add_argument("--prefix", metavar="DIR",
+                   help="where the venv goes (default: $SGJAX_CACHE/envs/contact-graspnet, found without settings; "
+                   "elsewhere, set SGJAX_CGN_PYTHON=DIR/bin/python)")
+    p.add_argument("--python", default="python3.11", help="the Python 3.11 that creates the venv (default python3.11)")
+    p.add_argument("--torch-index", metavar="URL",
+                   help="an extra index for torch, e.g. https://download.pytorch.org/whl/cpu where PyPI's torch is a CUDA build")
+    p.add_argument("--jobs", type=int, default=2, help="compile jobs building torch-cluster (MAX_JOBS, default 2)")
+    p.set_defaults(func=_cmd_baselines_setup)
     return parser
 
 

@@ -1,14 +1,14 @@
 """Baselines and ablations: the PointNetGPD evaluator (crop, network, training, checkpoints), the methods
 `pointnetgpd`, `s1+pointnetgpd` and `gpd+s2` on a tiny simulated scene, and the out-of-process
-`contact-graspnet` adapter (unavailable without its environment; its runner protocol and frame
-conversion against a fake `cgn_pytorch`)."""
+`contact-graspnet` adapter (its setup's default location with real files, the conversion of its
+predictions to our gripper and the choice of grasp; real inference when its environment exists)."""
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import subprocess
 import sys
-import textwrap
 
 import jax
 import jax.numpy as jnp
@@ -19,7 +19,7 @@ from flax import nnx
 from envs.camera import CameraConfig, observe
 from envs.objects import tiny_object_set
 from envs.scene import workspace_bounds
-from eval import baselines, contact_graspnet
+from eval import baselines, cgn_setup, contact_graspnet
 from eval.declutter import (
     DeclutterConfig,
     closing_region_objects,
@@ -306,9 +306,17 @@ def test_stage1_with_pointnetgpd(pointnetgpd_run, observation):
 # Contact-GraspNet.
 
 
+def _venv(path):
+    """A real, bare virtual environment at `path` (no pip: seconds)."""
+    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(path)], check=True)
+    return cgn_setup.env_python(path)
+
+
 def test_contact_graspnet_is_unavailable_with_setup_instructions(monkeypatch, tmp_path):
     monkeypatch.delenv(contact_graspnet.ENV_VAR, raising=False)
-    with pytest.raises(MethodUnavailable, match=r"not available yet: SGJAX_CGN_PYTHON is not set.*cgn-pytorch"):
+    monkeypatch.setenv("SGJAX_CACHE", str(tmp_path / "cache"))  # no environment at the default location
+    with pytest.raises(MethodUnavailable, match=r"not available yet: SGJAX_CGN_PYTHON is not set .*"
+                       r"run `sgjax baselines setup contact-graspnet`"):
         make_method("contact-graspnet")
     assert "contact-graspnet" not in method_names(available_only=True)
     monkeypatch.setenv(contact_graspnet.ENV_VAR, str(tmp_path / "no-python"))
@@ -320,53 +328,179 @@ def test_contact_graspnet_is_unavailable_with_setup_instructions(monkeypatch, tm
         make_method("contact-graspnet")
 
 
-FAKE_CGN = '''
-"""A stand-in for cgn_pytorch: two grasps at the masked points' centroid, checking the input contract."""
-import numpy as np
+def test_contact_graspnet_finds_the_setup_environment_by_default(monkeypatch, tmp_path):
+    """The default location with real files: a venv without the setup's marker is an interrupted setup;
+    with it, its python is used without any variable; SGJAX_CGN_PYTHON still overrides."""
+    monkeypatch.delenv(contact_graspnet.ENV_VAR, raising=False)
+    monkeypatch.setenv("SGJAX_CACHE", str(tmp_path / "cache"))
+    prefix = tmp_path / "cache" / "envs" / "contact-graspnet"
+    assert cgn_setup.default_prefix() == prefix and cgn_setup.state() == "absent"
+    python = _venv(prefix)
+    assert cgn_setup.state() == "incomplete" and cgn_setup.installed_python() is None
+    assert contact_graspnet.interpreter() == (None, "")
+    with pytest.raises(MethodUnavailable, match=r"incomplete \(an interrupted setup\); rerun `sgjax baselines setup"):
+        make_method("contact-graspnet")
+    (prefix / cgn_setup.MARKER).write_text("{}")
+    assert cgn_setup.state() == "ready" and cgn_setup.installed_python() == python
+    assert contact_graspnet.interpreter()[0] == str(python)
+    # The found interpreter is the one probed: a cgn_pytorch on its path makes it available.
+    monkeypatch.setenv("PYTHONPATH", str(tmp_path / "site"))
+    assert "has no cgn_pytorch module" in contact_graspnet.missing()
+    (tmp_path / "site" / "cgn_pytorch").mkdir(parents=True)
+    (tmp_path / "site" / "cgn_pytorch" / "__init__.py").write_text("")
+    contact_graspnet._probe.cache_clear()
+    assert contact_graspnet.missing() is None
+    monkeypatch.setenv(contact_graspnet.ENV_VAR, str(tmp_path / "elsewhere" / "python"))
+    assert contact_graspnet.interpreter()[0] == str(tmp_path / "elsewhere" / "python")
+    assert "is not an executable Python" in contact_graspnet.missing()
 
-def from_pretrained(device="cuda"):
-    assert device == "cpu"
-    print("Initializing net...")  # as the real package does, on stdout
-    return "model", None, None
 
-def inference(model, pcd, threshold=0.5, obj_mask=None):
-    assert pcd.ndim == 2 and pcd.shape[1] == 3 and np.abs(pcd.mean(0)).max() < 1e-4, "not mean-subtracted"
-    assert obj_mask.ndim == 1 and obj_mask.dtype == np.float32 and threshold == 0.5
-    print("inference on", len(pcd), "points")
-    c = pcd[obj_mask > 0].mean(0)
-    down = np.array([[1.0, 0, 0], [0, -1.0, 0], [0, 0, -1.0]])  # approach straight down, closing along x
-    grasps = np.tile(np.eye(4), (2, 1, 1))
-    grasps[:, :3, :3] = down
-    grasps[:, :3, 3] = c - 0.1034 * down[:, 2]  # contact baseline at the centroid
-    grasps[0, :3, 3] += [0.05, 0, 0]
-    return grasps, np.array([0.6, 0.9]), None
-'''
+def test_setup_version_checks():
+    assert cgn_setup.satisfied("torch==2.13.0", "2.13.0+cpu") and cgn_setup.satisfied("torch==2.13.0", "2.13.0")
+    assert not cgn_setup.satisfied("torch==2.13.0", "2.13.1") and not cgn_setup.satisfied("torch==2.13.0", None)
+    assert cgn_setup.satisfied("numpy<2", "1.26.4") and not cgn_setup.satisfied("numpy<2", "2.0.0rc1")
+    assert cgn_setup.satisfied("scipy", "1.0") and not cgn_setup.satisfied("scipy", None)
+    assert [cgn_setup.requirement_name(r) for r in ("numpy<2", "torch-cluster==1.6.3", "tqdm")] == [
+        "numpy", "torch-cluster", "tqdm"]
+    assert [s.requirements for s in cgn_setup.steps()] == [
+        ("torch==2.13.0",), cgn_setup.DEPS, ("torch-cluster==1.6.3",), ("cgn-pytorch==0.4.3",)]
+    cluster = cgn_setup.steps(max_jobs=3)[2]
+    assert cluster.pip_args == ("--no-build-isolation", "--no-deps") and dict(cluster.env) == {
+        "FORCE_ONLY_CPU": "1", "MAX_JOBS": "3"}
 
 
-def test_contact_graspnet_runner_protocol_and_frames(monkeypatch, tmp_path):
-    (tmp_path / "cgn_pytorch").mkdir()
-    (tmp_path / "cgn_pytorch" / "__init__.py").write_text(textwrap.dedent(FAKE_CGN))
-    monkeypatch.setenv(contact_graspnet.ENV_VAR, sys.executable)
-    monkeypatch.setenv("PYTHONPATH", str(tmp_path))
-    default = make_method("contact-graspnet")  # crops to the benchmark's workspace, as SuperGrasp does
-    assert default.config.scene_bounds == workspace_bounds(LabelConfig().scene, LabelConfig().workspace_margin)
-    # No voxel grid here, so the fake's centroid is exactly the box's.
+def _cgn_hand(rotation, contact, width, depth=contact_graspnet.PANDA_CONTACT_DEPTH):
+    """A Panda hand pose placed as cgn_pytorch's CGN.build_6d_grasps places it: c - depth z + (w / 2) x."""
+    hand = np.eye(4)
+    hand[:3, :3] = rotation
+    hand[:3, 3] = contact - depth * rotation[:, 2] + 0.5 * width * rotation[:, 0]
+    return hand
+
+
+def test_contact_graspnet_conversion_geometry():
+    """Fingertips on the Panda's fingertip line (0.112204 - 0.1034 m beyond the contact baseline), the
+    closing region centred between the two contacts (the width is signed: w < 0 puts the hand on the
+    contact's -x side), the hand open to min(|w| + 5 mm, stroke)."""
+    rng = np.random.default_rng(3)
+    rotations = np.stack([np.linalg.qr(rng.normal(size=(3, 3)))[0] for _ in range(5)])
+    rotations[:, :, 2] *= np.sign(np.linalg.det(rotations))[:, None]  # proper rotations
+    contacts = rng.uniform(-0.1, 0.1, (5, 3))
+    widths = np.array([0.0, 0.02, -0.05, 0.075, -0.08])
+    offset = np.array([0.3, -0.2, 0.1])
+    hands = np.stack([_cgn_hand(r, c, w) for r, c, w in zip(rotations, contacts, widths)])
+    poses, opening = contact_graspnet.cgn_to_sgjax(hands, contacts, widths, offset, SPEC)
+    np.testing.assert_allclose(poses[:, :3, :3], rotations, atol=1e-12)
+    np.testing.assert_allclose(opening, [0.005, 0.025, 0.055, 0.08, 0.08])
+    beyond = 0.112204 - 0.1034
+    for pose, c, w, width in zip(poses, contacts + offset, widths, opening):
+        other = c + w * pose[:3, 0]  # the second contact, across the predicted width
+        local = (np.stack([c, other]) - pose[:3, 3]) @ pose[:3, :3]  # gripper frame
+        # Centred: the contacts at x = -+w/2 on the closing axis (on either side), on the plane y = 0 ...
+        np.testing.assert_allclose(local[:, 0], [-w / 2, w / 2], atol=1e-12)
+        np.testing.assert_allclose(local[:, 1], 0.0, atol=1e-12)
+        # ... and 8.8 mm behind the fingertips (z = finger_length), inside the open hand's closing region.
+        np.testing.assert_allclose(local[:, 2], SPEC.finger_length - beyond, atol=1e-12)
+        if width > abs(w):  # (at |w| = stroke the contacts lie on the fingers' faces)
+            assert np.asarray(gripper.points_in_closing_region(np.stack([c, other]), pose, width, SPEC)).all()
+        # The Panda hand frame maps to the same place: its fingertip line is ours.
+        hand = _cgn_hand(pose[:3, :3], c, w)
+        panda_tips = hand[:3, 3] + 0.112204 * hand[:3, 2]
+        np.testing.assert_allclose(pose[:3, 3] + SPEC.finger_length * pose[:3, 2], panda_tips, atol=1e-12)
+    with pytest.raises(ValueError, match="contacts and widths must be finite"):
+        contact_graspnet.cgn_to_sgjax(hands[:1], contacts[:1], [np.nan], offset, SPEC)
+    with pytest.raises(ValueError, match="got 5 grasps, 5 contacts and 4 widths"):
+        contact_graspnet.cgn_to_sgjax(hands, contacts, widths[:4], offset, SPEC)
+
+
+def test_contact_graspnet_chooses_the_most_confident_grasp_clear_of_the_table():
+    config = contact_graspnet.CGNConfig()
+    down = np.diag([1.0, -1.0, -1.0])  # approach straight down, closing along x
+    side = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])  # approach along +x, closing along -z
+    # A 4 cm-wide object on a table at z = 0: a top-down grasp 1.5 cm deep, and a side grasp across its
+    # height whose lower finger reaches below the table top (CGN's training tolerated 2 cm of it).
+    contacts = np.array([[-0.02, 0.0, 0.045], [0.0, 0.0, 0.04], [0.0, 0.0, 0.035], [0.3, 0.0, 0.01]])
+    widths = np.array([0.04, 0.04, 0.04, 0.02])
+    rotations = np.stack([down, side, down, down])
+    hands = np.stack([_cgn_hand(r, c, w) for r, c, w in zip(rotations, contacts, widths)])
+    poses, opening = contact_graspnet.cgn_to_sgjax(hands, contacts, widths, np.zeros(3), SPEC)
+    heights = np.asarray(gripper.lowest_height(poses.astype(np.float32), opening.astype(np.float32), SPEC,
+                                               np.array([0.0, 0.0, 1.0, 0.0])))
+    assert heights[0] > 0.003 and heights[1] < 0.0 and heights[2] > 0.003
+    confidence = np.array([0.7, 0.95, 0.6, 0.99])
+    on_object = np.array([True, True, True, False])  # the last contact lies on the table
+    best, reason, counts = contact_graspnet.choose(poses, opening, confidence, on_object, 0.0, config)
+    assert (best, reason, counts) == (0, "", {"grasps": 3, "table": 1, "avoided": 0})
+    # No table seen: the side grasp is the most confident one.
+    assert contact_graspnet.choose(poses, opening, confidence, on_object, -np.inf, config)[0] == 1
+    # The memory of failed grasps leaves the top-down grasp out; then the next one clear of the table.
+    best, _, counts = contact_graspnet.choose(poses, opening, confidence, on_object, 0.0, config, avoid=poses[:1])
+    assert best == 2 and counts["avoided"] == 1
+    best, reason, _ = contact_graspnet.choose(poses, opening, confidence, on_object, 0.0, config, avoid=poses[[0, 2]])
+    assert best is None and reason == "all 2 grasps clear of the table are the same grasp as one that already failed"
+    best, reason, _ = contact_graspnet.choose(poses[1:2], opening[1:2], confidence[1:2], on_object[1:2], 0.0, config)
+    assert best is None and reason == "all 1 grasps come closer than 3 mm to the table"
+    best, reason, _ = contact_graspnet.choose(poses, opening, confidence * 0.5, on_object, 0.0, config)
+    assert best is None and reason == "Contact-GraspNet found no grasp on an object above confidence 0.5"
+    table = np.c_[np.zeros((5, 2)), [0.0, 0.001, -0.001, 0.0, 0.002]]
+    assert contact_graspnet.table_height(np.r_[table, [[0, 0, 0.05]]], [-1] * 5 + [0]) == 0.0
+    assert contact_graspnet.table_height(table, [0] * 5) == -np.inf
+    # Backing off along the approach (CGNConfig.table_backoff): a top-down grasp 5 mm too low moves up
+    # until it clears; the side grasp (approach horizontal) cannot, nor a grasp that needs more than allowed.
+    lowered = poses.copy()
+    lowered[0, 2, 3] -= heights[0] + 0.002  # its lowest point 2 mm below the table top
+    moved = contact_graspnet.back_off(lowered, opening, 0.0, SPEC, 0.003, 0.02)
+    np.testing.assert_allclose(moved[1:3], lowered[1:3])  # the side grasp; the one clear of the table
+    np.testing.assert_allclose(moved[0, :3, :3], lowered[0, :3, :3])
+    assert moved[0, 2, 3] - lowered[0, 2, 3] == pytest.approx(0.005, abs=2e-4)
+    assert contact_graspnet.clears_table(moved[[0, 2, 3]], opening[[0, 2, 3]], 0.0, SPEC, 0.003).all()
+    kept = contact_graspnet.back_off(lowered, opening, 0.0, SPEC, 0.003, 0.004)  # the first needs 5 mm
+    np.testing.assert_allclose(kept[:3], lowered[:3])
+    with pytest.raises(ValueError, match="CGNConfig.opening must be 'full' or 'predicted', got 'wide'"):
+        contact_graspnet.CGNConfig(opening="wide")
+
+
+@pytest.mark.skipif(contact_graspnet.missing() is not None,
+                    reason="Contact-GraspNet's environment is not set up: run `sgjax baselines setup contact-graspnet`")
+def test_contact_graspnet_real_inference_on_a_small_cloud(observation):
+    """The real cgn-pytorch model out of process on a rendered tiny scene: the runner's replies follow
+    the model's own geometry (hand = contact - 0.1034 z + w/2 x with the signed width w clamped to
+    [-16, 8] cm, the model called with gripper_width 0.16), and the executed grasp is converted and chosen
+    by the rules, repeatably."""
+    points, labels, view = observation
+    default = make_method("contact-graspnet").config  # the measured defaults (docs/benchmark.md)
+    assert default.scene_bounds == workspace_bounds(LabelConfig().scene, LabelConfig().workspace_margin)
+    assert (default.voxel, default.opening, default.threshold, default.table_backoff) == (0.003, "full", 0.5, 0.02)
+    keep = np.random.default_rng(0).choice(len(points), 20000, replace=False)
     method = make_method("contact-graspnet", config=contact_graspnet.CGNConfig(voxel=0.0))
-    rng = np.random.default_rng(0)
-    table = np.c_[rng.uniform(-0.2, 0.2, (500, 2)), np.zeros(500)]
-    box = rng.uniform([0.05, 0.05, 0.0], [0.09, 0.07, 0.06], (300, 3))
-    points, labels = np.r_[table, box], np.r_[np.full(500, -1), np.zeros(300, int)]
     try:
-        decision = method.plan(points, labels, (0.0, 0.0, 1.0), seed=7)
-        again = method.plan(points, labels, (0.0, 0.0, 1.0), seed=7)  # the same runner process
+        raw = method.predict(points[keep], labels[keep] >= 0, seed=1)
+        decision = method.plan(points, labels, view, seed=1)
+        again = method.plan(points, labels, view, seed=1)
     finally:
         method.close()
-    assert decision.info["grasps"] == 2 and decision.score == pytest.approx(0.9)
+    assert len(raw["confidence"]) >= 2048 and (np.diff(raw["confidence"]) <= 0).all()
+    x, z, w = raw["grasps"][:, :3, 0], raw["grasps"][:, :3, 2], raw["widths"]
+    shift = raw["grasps"][:, :3, 3] - (raw["contacts"] - 0.1034 * z)  # the hand's offset from the contact
+    along = np.sum(shift * x, axis=1)
+    np.testing.assert_allclose(shift, along[:, None] * x, atol=1e-5)  # along the closing axis only ...
+    np.testing.assert_allclose(along, w / 2, atol=1e-5)  # ... by half the signed width
+    assert -0.16 - 1e-6 <= w.min() and w.max() <= 0.08 + 1e-6
+    on = raw["contacts"][raw["on_object"]]  # object flags: the contacts are object points
+    assert len(on) and np.linalg.norm(on[:, None] - points[labels >= 0][None], axis=-1).min(1).max() < 1e-5
+    assert decision.pose is not None, decision.reason
     np.testing.assert_allclose(again.pose, decision.pose)
-    # Same axes; the sgjax fingertips (origin + finger_length * z) at the contact baseline (the centroid).
-    np.testing.assert_allclose(decision.pose[:3, :3], np.diag([1.0, -1.0, -1.0]), atol=1e-12)
-    np.testing.assert_allclose(decision.pose[:3, 3] + SPEC.finger_length * decision.pose[:3, 2], box.mean(0), atol=1e-6)
-    assert decision.width == SPEC.max_opening and decision.timing["stage1_s"] == 0.0
+    info = decision.info
+    assert info["grasps"] >= 1 and decision.score > 0.5 and abs(info["table_z"]) < 0.002
+    # The executed grasp: its contact baseline centred, 8.8 mm behind the fingertips, the hand fully open.
+    contact, w = np.asarray(info["contact"]), info["predicted_width"]
+    centre = decision.pose[:3, 3] + (SPEC.finger_length - (0.112204 - 0.1034)) * decision.pose[:3, 2]
+    gap = contact + 0.5 * w * decision.pose[:3, 0] - centre  # 0, or backed off along the approach (<= 2 cm)
+    back = gap @ decision.pose[:3, 2]
+    np.testing.assert_allclose(gap, back * decision.pose[:3, 2], atol=1e-9)
+    assert -1e-9 <= back <= 0.02 + 1e-9
+    assert decision.width == SPEC.max_opening
+    assert contact_graspnet.clears_table(decision.pose[None], [decision.width], info["table_z"], SPEC, 0.003).all()
+    check_grasp(decision, points, labels)
 
 
 def test_runner_seeds_libc_rand():

@@ -133,3 +133,33 @@ def test_label_options_are_checked_before_any_work(tmp_path, capsys, options, me
     assert main(["label", "--scenes", "1", "--out", str(tmp_path / "labels"), *options]) != 0
     assert message in capsys.readouterr().err
     assert not (tmp_path / "labels").exists()
+
+
+def test_baselines_setup_arguments_and_bad_input(tmp_path, capsys):
+    """`sgjax baselines setup`: argparse rejects a missing or unknown baseline; bad options fail with a
+    message before anything is created."""
+    for argv, message in ((["baselines", "setup"], "the following arguments are required: baseline"),
+                          (["baselines", "setup", "gpd"], "invalid choice: 'gpd'")):
+        with pytest.raises(SystemExit) as exit_:
+            main(argv)
+        assert exit_.value.code == 2 and message in capsys.readouterr().err
+    prefix = tmp_path / "env"
+    assert main(["baselines", "setup", "contact-graspnet", "--prefix", str(prefix), "--jobs", "0"]) == 1
+    assert "max_jobs must be >= 1, got 0" in capsys.readouterr().err and not prefix.exists()
+    done = subprocess.run([sys.executable, "-m", "sgjax_cli", "baselines", "setup", "contact-graspnet", "--prefix",
+                           str(prefix), "--python", str(tmp_path / "no-python")], capture_output=True, text=True)
+    assert done.returncode == 1 and f"cannot run '{tmp_path / 'no-python'}' to create the venv" in done.stderr
+    assert not prefix.exists()
+
+
+def test_baselines_setup_rerun_skips_a_finished_environment(capsys):
+    """On a finished environment (here: the default one, when it exists) the setup skips every step and
+    only probes the checkpoint again."""
+    from eval import cgn_setup
+
+    if cgn_setup.installed_python() is None:
+        pytest.skip("no Contact-GraspNet environment at the default location: run `sgjax baselines setup contact-graspnet`")
+    assert main(["baselines", "setup", "contact-graspnet"]) == 0
+    out = capsys.readouterr().out
+    assert out.count("[skip]") == 5 and "[run ] probe" in out and "pip install" not in out
+    assert "finds this environment by default" in out and cgn_setup.state() == "ready"

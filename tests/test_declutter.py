@@ -280,10 +280,12 @@ def test_resume_key_covers_the_methods_own_settings(objects):
     assert {k for k in key(other) if key(other)[k] != key(GPDConfig())[k]} == {"method_config"}
 
 
-def test_bad_input_is_reported_clearly(tmp_path, objects, capsys):
+def test_bad_input_is_reported_clearly(tmp_path, objects, capsys, monkeypatch):
     with pytest.raises(UnknownMethod, match="expected one of supergrasp, supergrasp-norefine, gpd"):
         make_method("gdp")
-    with pytest.raises(MethodUnavailable, match="not available yet"):
+    with monkeypatch.context() as m, pytest.raises(MethodUnavailable, match="not available yet"):
+        m.delenv("SGJAX_CGN_PYTHON", raising=False)
+        m.setenv("SGJAX_CACHE", str(tmp_path / "no-cgn"))  # no Contact-GraspNet environment there
         make_method("contact-graspnet")
     with pytest.raises(ValueError, match="does not take option"):
         make_method("gpd", model="runs/x")
@@ -354,7 +356,7 @@ def test_supergrasp_methods_run_a_tiny_scene(objects, small_db):
 
 
 @pytest.mark.skipif(METHODS["contact-graspnet"].unavailable_reason() is not None,
-                    reason="Contact-GraspNet's environment is not set up ($SGJAX_CGN_PYTHON)")
+                    reason="Contact-GraspNet's environment is not set up: run `sgjax baselines setup contact-graspnet`")
 def test_contact_graspnet_runs_a_tiny_scene(objects):
     """The real cgn-pytorch model, out of process: a tiny scene runs by the rules (outcomes are its own)."""
     method = make_method("contact-graspnet")
