@@ -9,6 +9,9 @@ With `TrialConfig.early_stop`, trials whose outcome is decided are left out of t
 
 from __future__ import annotations
 
+import copy
+
+import mujoco
 import numpy as np
 from mujoco import batch as mj_batch
 
@@ -30,9 +33,13 @@ def rollout_cpu(scene: scene_lib.Scene, judge: Judge, schedule: Schedule, nthrea
     nthread: engine threads (0: all cores).
     """
     model = scene.model
+    if judge.config.sleep:  # on a copy: the scene's own model (settling, the camera) is unchanged
+        model = copy.copy(model)
+        model.opt.enableflags |= int(mujoco.mjtEnableBit.mjENBL_SLEEP)
     m = len(judge.targets)
     nphase = len(schedule.phase_steps)
-    batch = mj_batch.Batch(model, nsim=m, nthread=nthread)
+    # Sleep's bookkeeping lives in each simulation's MjData, so it needs a persistent batch.
+    batch = mj_batch.Batch(model, nsim=m, nthread=nthread, persistent=judge.config.sleep)
     batch.state[:] = initial_states(scene, schedule, judge.lay)
     xfrc, qpos = batch.bind("xfrc_applied"), batch.bind("qpos")
     target_bodies = scene.body_ids[judge.targets]

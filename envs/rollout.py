@@ -81,6 +81,9 @@ class TrialConfig:
     batch_size: trials per engine call (CPU) or per compiled MJX batch (fixed shape, padded).
     early_stop: the CPU backend stops simulating a trial as soon as its outcome is decided (a
         collision, a drop); its traces then repeat the state at the stop. Outcomes are unchanged.
+    sleep: the CPU backend lets bodies at rest sleep (MuJoCo's mjENBL_SLEEP, in a persistent batch)
+        until something touches them: resting neighbours cost nothing. Measured 1.65x faster with the
+        same outcome for all ~640 trials of 3 labelled scenes (docs/experiments.md). MJX has no sleep.
     """
 
     pregrasp_distance: float = 0.05
@@ -99,11 +102,12 @@ class TrialConfig:
     max_slip: float = 0.01
     batch_size: int = 256
     early_stop: bool = True
+    sleep: bool = True
 
     def __post_init__(self):
         for field in dataclasses.fields(self):
             value = getattr(self, field.name)
-            if field.name not in ("close_target", "early_stop") and not value >= 0:
+            if field.name not in ("close_target", "early_stop", "sleep") and not value >= 0:
                 raise ValueError(f"TrialConfig.{field.name} must be non-negative, got {value}")
         if self.batch_size < 1:
             raise ValueError(f"TrialConfig.batch_size must be >= 1, got {self.batch_size}")

@@ -212,6 +212,18 @@ def test_bad_inputs_raise_clear_errors(pair):
         trial.run_trials(removed, 1, ACROSS_X[None], [0.05])
 
 
+def test_sleeping_neighbours_change_nothing(pair):
+    """With TrialConfig.sleep the resting neighbour sleeps; grasping and lifting cube 0 beside it gives
+    the same outcomes and nearly the same trajectories as without, and the scene's model is untouched."""
+    flags = pair.model.opt.enableflags
+    poses, widths = np.stack([ACROSS_X, IN_THE_AIR]), [0.065, 0.065]
+    awake = trial.run_trials(pair, 0, poses, widths, config=trial.TrialConfig(sleep=False))
+    asleep = trial.run_trials(pair, 0, poses, widths, config=trial.TrialConfig(sleep=True))
+    assert asleep.outcome.tolist() == awake.outcome.tolist() == [Outcome.SUCCESS, Outcome.DROPPED_LIFT]
+    np.testing.assert_allclose(asleep.object_pose[:, :, :3], awake.object_pose[:, :, :3], atol=0.005)
+    assert pair.model.opt.enableflags == flags
+
+
 @pytest.mark.slow
 def test_cpu_and_mjx_backends_agree(assets):
     """Same trials on the C engine and MJX give the same outcomes (MJX compiles for ~20-60 s on CPU)."""
