@@ -371,13 +371,16 @@ class Planner:
         labels = _labels(labels, len(scene))
         view, avoid = _viewpoint(viewpoint), _avoid(avoid)
         ids, counts = np.unique(labels[labels >= 0], return_counts=True)
+        # The table is filter (v)'s: dropping its points once here saves each object's crop a pass over them.
+        free = self.stage1.off_table(scene, self.config.support_plane)
+        obstacles, obstacle_labels = scene[free], labels[free]
         objects, skipped = [], []
         for label, count in zip(ids.tolist(), counts.tolist()):
             if count < self.config.min_object_points:
                 skipped.append({"label": label, "points": count, "candidates": 0,
                                 "reason": f"{count} visible points < min_object_points {self.config.min_object_points}"})
             else:
-                objects.append((label, scene[labels == label], scene[labels != label]))  # obstacles: the rest
+                objects.append((label, scene[labels == label], obstacles[obstacle_labels != label]))  # the rest
         if not objects:
             if len(ids) == 0:
                 reason = "no object points: every label is < 0 (table/background)"
@@ -404,7 +407,8 @@ class Planner:
         mask = np.asarray(target_mask)
         if mask.dtype != bool or mask.shape != (len(scene),):
             raise ValueError(f"the target mask must be bool with shape [N] = ({len(scene)},), got {mask.dtype} {mask.shape}")
-        return self._plan_one(scene, scene[mask], scene[~mask], _viewpoint(viewpoint), seed, start, _avoid(avoid))
+        free = self.stage1.off_table(scene, self.config.support_plane)
+        return self._plan_one(scene, scene[mask], scene[~mask & free], _viewpoint(viewpoint), seed, start, _avoid(avoid))
 
     # -- internals ------------------------------------------------------------------------------
 

@@ -183,7 +183,7 @@ def test_each_filter_removes_exactly_its_case():
     assert bool(result.normal_angle[3]) and not bool(result.normal_angle[0])
     assert removal_counts(result, valid) == {
         "transferred": 4, "collision_object": 1, "too_few_points": 1, "normal_angle": 1, "collision_scene": 0,
-        "below_support": 0, "kept": 1,
+        "below_support": 0, "scene_untested": 0, "kept": 1,
     }
     # A neighbour right where the +y finger of `good` goes; padding slots are never kept.
     neighbour = np.asarray(_box_cloud(half=(0.01, 0.003, 0.01)) + np.array([0.0, 0.034, 0.01]), np.float32)
@@ -198,6 +198,37 @@ def test_each_filter_removes_exactly_its_case():
     assert bool(clear.keep[0])
     padded = coarse_filter(jnp.asarray(poses[:1]), jnp.asarray(widths[:1]), jnp.zeros(1, bool), *args)
     assert not bool(padded.keep[0])
+
+
+def test_scene_test_runs_on_the_first_scene_slots_candidates_that_passed_the_others():
+    cloud = _box_cloud(half=(0.05, 0.015, 0.03))
+    mask = np.ones(len(cloud), bool)
+    normals = estimate_normals(jnp.asarray(cloud), jnp.asarray(mask), jnp.asarray([0.0, 0.0, 1.0]))
+    down, across = np.array([0, 0, -1.0]), np.array([0, 1.0, 0])
+    good = grasp_frame(down, across, np.array([0, 0, 0.035]))  # meets the neighbour below
+    moved = grasp_frame(down, across, np.array([-0.03, 0, 0.035]))  # clear of it
+    poses = jnp.asarray(np.stack([good, good, good, moved, good, moved]), jnp.float32)
+    widths = jnp.asarray([0.06, 0.02, 0.06, 0.06, 0.06, 0.06], jnp.float32)  # the second closes inside the box
+    valid = jnp.ones(6, bool)
+    neighbour = np.asarray(_box_cloud(half=(0.01, 0.003, 0.01)) + np.array([0.0, 0.034, 0.01]), np.float32)
+    run = lambda slots: coarse_filter(
+        poses, widths, valid, jnp.asarray(cloud), jnp.asarray(mask), normals, jnp.asarray(neighbour),
+        jnp.ones(len(neighbour), bool), cfg=FilterConfig(scene_slots=slots))
+    every = run(None)
+    assert np.asarray(every.collision_scene).tolist() == [True, False, True, False, True, False]
+    assert np.asarray(every.keep).tolist() == [False, False, False, True, False, True]
+    # Three slots: the first three that passed (i)-(iii) and (v) (rows 0, 2, 3) are tested, the rest removed.
+    three = run(3)
+    assert np.asarray(three.collision_scene).tolist() == [True, False, True, False, False, False]
+    assert np.asarray(three.scene_untested).tolist() == [False, False, False, False, True, True]
+    assert np.asarray(three.keep).tolist() == [False, False, False, True, False, False]
+    assert removal_counts(three, valid) == {
+        "transferred": 6, "collision_object": 1, "too_few_points": 0, "normal_angle": 0, "below_support": 0,
+        "collision_scene": 2, "scene_untested": 2, "kept": 1,
+    }
+    assert np.asarray(run(5).keep).tolist() == np.asarray(every.keep).tolist()  # all 5 fit: the same as None
+    with pytest.raises(ValueError, match="scene_slots"):
+        FilterConfig(scene_slots=0)
 
 
 def test_shadow_depth_blocks_a_finger_in_a_neighbours_hidden_side():
@@ -417,6 +448,27 @@ def test_normals_are_unit_and_face_the_viewpoint():
     assert np.all(np.sum(n * (view - cloud), 1) >= -1e-6)
     top = (cloud[:, 2] > 0.0299) & (np.abs(cloud[:, 0]) < 0.015) & (np.abs(cloud[:, 1]) < 0.01)
     assert np.all(n[top, 2] > 0.99)  # top face: +z
+
+
+def test_host_neighbours_match_the_jax_ones_and_give_the_same_normals():
+    from sgjax.stage1.filters import nearest_neighbours
+    from sgjax.stage1.pipeline import knn_indices
+
+    rng = np.random.default_rng(3)
+    points = rng.uniform(-0.05, 0.05, (2, 300, 3)).astype(np.float32)
+    mask = np.zeros((2, 300), bool)
+    mask[0, :260] = True
+    mask[1, :9] = True  # fewer valid points than k
+    view = jnp.asarray([[0.3, 0.2, 0.5]] * 2)
+    index, ok = knn_indices(points, mask, 16)
+    jax_index, jax_ok = (np.asarray(a) for a in nearest_neighbours(jnp.asarray(points), jnp.asarray(mask), 16))
+    np.testing.assert_array_equal(ok, jax_ok)
+    for row, jax_row, good in zip(index.reshape(-1, 16), jax_index.reshape(-1, 16), ok.reshape(-1, 16)):
+        assert set(row[good]) == set(jax_row[good])
+    assert ok[1, 0].sum() == 9 and ok[0, 0].all()
+    host = estimate_normals(jnp.asarray(points), jnp.asarray(mask), view, neighbours=(jnp.asarray(index), jnp.asarray(ok)))
+    np.testing.assert_allclose(np.asarray(host), np.asarray(estimate_normals(jnp.asarray(points), jnp.asarray(mask), view)),
+                               atol=1e-5)
 
 
 # ---------------------------------------------------------------------------------------------

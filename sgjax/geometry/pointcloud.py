@@ -197,11 +197,30 @@ def voxel_downsample(
     scaled = points / voxel
     cell = np.floor(scaled).astype(np.int64)
     offset = np.linalg.norm(scaled - cell - 0.5, axis=1)
-    order = np.lexsort((offset, cell[:, 2], cell[:, 1], cell[:, 0]))  # by voxel, nearest-to-centre first
-    sorted_cells = cell[order]
-    first = np.ones(len(order), bool)
-    first[1:] = np.any(sorted_cells[1:] != sorted_cells[:-1], axis=1)
-    keep = order[first]
+    cell -= cell.min(0)
+    span = cell.max(0) + 1
+    if np.prod(span.astype(np.float64)) < 2.0**62:
+        # One int64 key in the voxels' (x, y, z) order. A stable sort on it alone is ~10x faster than a
+        # lexsort with the offset (a camera's cloud is nearly in key order already); the nearest point
+        # of each voxel (the first of equals) is then picked per run.
+        key = (cell[:, 0] * span[1] + cell[:, 1]) * span[2] + cell[:, 2]
+        order = np.argsort(key, kind="stable")
+        sorted_key, sorted_offset = key[order], offset[order]
+        start = np.ones(len(order), bool)
+        start[1:] = sorted_key[1:] != sorted_key[:-1]
+        starts = np.flatnonzero(start)
+        nearest = np.minimum.reduceat(sorted_offset, starts)
+        group = np.cumsum(start) - 1
+        at_min = np.flatnonzero(sorted_offset == nearest[group])
+        first = np.ones(len(at_min), bool)
+        first[1:] = group[at_min[1:]] != group[at_min[:-1]]
+        keep = order[at_min[first]]
+    else:  # a cloud too wide for one key
+        order = np.lexsort((offset, cell[:, 2], cell[:, 1], cell[:, 0]))  # by voxel, nearest-to-centre first
+        sorted_cells = cell[order]
+        first = np.ones(len(order), bool)
+        first[1:] = np.any(sorted_cells[1:] != sorted_cells[:-1], axis=1)
+        keep = order[first]
     return points[keep], None if labels is None else np.asarray(labels)[keep]
 
 

@@ -38,7 +38,8 @@ import numpy as np
 from sgjax.geometry.gripper import GripperSpec, local_regions, lowest_height, segment_regions, to_gripper_frame
 from sgjax.geometry.superquadric import Superquadric, log_implicit_local
 
-REASONS = ("collision_object", "too_few_points", "normal_angle", "collision_scene", "below_support")
+# In the order the tests are reported (`removal_counts`): (iv) runs last, on what passed the others.
+REASONS = ("collision_object", "too_few_points", "normal_angle", "below_support", "collision_scene", "scene_untested")
 NO_PLANE = (0.0, 0.0, 0.0, 1.0)  # a "plane" every point is above
 HIDDEN_CONTACTS = ("reject", "accept", "superquadric")
 
@@ -70,6 +71,12 @@ class FilterConfig:
     # "superquadric" (default: on the benchmark it raised TSR at about the same GSR; see README).
     hidden_contacts: str = "superquadric"
     line_samples: int = 32  # "superquadric": samples along the closing line before bisection
+    # (iv) tests every obstacle point (and its shadow) against every hand box along the approach: the
+    # costliest test by far (seen-10 under load: Stage 1 took 3.4 s with it, 1.2 s without). It runs on
+    # at most this many candidates, those that passed (i)-(iii) and (v), in match order; any further
+    # ones are removed untested ("scene_untested"). On a seen-10 scene no object had more than 230 such
+    # candidates. None: test them all.
+    scene_slots: int | None = 256
 
     def __post_init__(self):
         if self.hidden_contacts not in HIDDEN_CONTACTS:
@@ -78,19 +85,33 @@ class FilterConfig:
             raise ValueError(f"shadow_depth must be >= 0 metres, got {self.shadow_depth}")
         if self.line_samples < 2:
             raise ValueError(f"line_samples must be >= 2, got {self.line_samples}")
+        if self.scene_slots is not None and self.scene_slots < 1:
+            raise ValueError(f"scene_slots must be >= 1 or None, got {self.scene_slots}")
 
 
-def estimate_normals(points: jax.Array, mask: jax.Array, viewpoint: jax.Array, k: int = 16) -> jax.Array:
-    """Unit normals by PCA over the k nearest valid neighbours, oriented towards `viewpoint`.
-
-    points [..., N, 3], mask [..., N], viewpoint [..., 3] -> normals [..., N, 3] (zeros where masked).
-    """
+def nearest_neighbours(points: jax.Array, mask: jax.Array, k: int = 16) -> tuple[jax.Array, jax.Array]:
+    """The k nearest valid points of each point (itself included): points [..., N, 3], mask [..., N] ->
+    (index int32 [..., N, k], ok bool [..., N, k]: False where fewer than k points are valid).
+    Exact, O(N^2) in memory; on the host `sgjax.stage1.pipeline.knn_indices` gives the same from a k-d tree."""
     n = points.shape[-2]
     k = min(k, n)
     d2 = jnp.sum((points[..., :, None, :] - points[..., None, :, :]) ** 2, -1)
     d2 = jnp.where(mask[..., None, :], d2, jnp.inf)
     neg, idx = jax.lax.top_k(-d2, k)  # [..., N, k], self first
-    ok = jnp.isfinite(neg)
+    return idx.astype(jnp.int32), jnp.isfinite(neg)
+
+
+def estimate_normals(
+    points: jax.Array, mask: jax.Array, viewpoint: jax.Array, k: int = 16,
+    neighbours: tuple[jax.Array, jax.Array] | None = None,
+) -> jax.Array:
+    """Unit normals by PCA over the k nearest valid neighbours, oriented towards `viewpoint`.
+
+    points [..., N, 3], mask [..., N], viewpoint [..., 3] -> normals [..., N, 3] (zeros where masked).
+    neighbours: (index [..., N, k'], ok [..., N, k']) if known (`nearest_neighbours`, or a k-d tree on the
+    host: XLA's top_k on CPU costs ~10x the rest); None: found here.
+    """
+    idx, ok = nearest_neighbours(points, mask, k) if neighbours is None else neighbours
     nbrs = jnp.take_along_axis(points[..., None, :, :], idx[..., None], axis=-2)
     w = ok.astype(points.dtype)[..., None]
     count = jnp.maximum(jnp.sum(w, -2), 1.0)
@@ -106,7 +127,9 @@ def estimate_normals(points: jax.Array, mask: jax.Array, viewpoint: jax.Array, k
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass
 class FilterResult:
-    """Per candidate [M]: keep, and which tests failed (each test on its own, not only the first)."""
+    """Per candidate [M]: keep, and which tests failed: (i)-(iii) and (v) each on its own, (iv)
+    (`collision_scene`) only on candidates that passed them, `scene_untested` those beyond its
+    `FilterConfig.scene_slots`."""
 
     keep: jax.Array
     collision_object: jax.Array
@@ -114,6 +137,7 @@ class FilterResult:
     normal_angle: jax.Array
     collision_scene: jax.Array
     below_support: jax.Array
+    scene_untested: jax.Array
     points_between: jax.Array  # observed target points in the closing region [M] (scaled by point_scale)
 
 
@@ -216,6 +240,7 @@ def coarse_filter(
     it nothing can judge a grasp whose contacts are all hidden, and such grasps are removed (as "reject").
     viewpoint [3]: the camera that saw the scene; with cfg.shadow_depth > 0, (iv) also tests the space
     each obstacle point hides (`sgjax.geometry.gripper.segment_regions`).
+    (iv) runs last, on at most `cfg.scene_slots` of the candidates that passed the other tests.
     """
     hidden_cos = None
     if cfg.hidden_contacts == "superquadric" and superquadric is not None:
@@ -227,28 +252,47 @@ def coarse_filter(
     points_between = jnp.round(jnp.sum(in_closing, -1) * point_scale).astype(jnp.int32)
     too_few = points_between < cfg.min_points
     normal_bad = ~_normal_test(local, in_closing, normals, poses[:, :3, 0], cfg, hidden_cos)
-    if scene_points is None:
-        collision_scene = jnp.zeros_like(collision_object)
-    else:
-        scene_local = to_gripper_frame(scene_points, poses)
-        # The executed motion comes straight in along the approach axis: the fingers and palm are swept
-        # back over approach_clearance (every hand position on that path). At the grasp, an obstacle
-        # between the fingers would be squeezed too (the scene holds no point of the target itself).
-        sweep = cfg.approach_clearance if cfg.approach_steps > 1 else 0.0
-        if cfg.shadow_depth > 0.0 and viewpoint is not None:
-            ray = scene_points - viewpoint
-            ray = ray / jnp.maximum(jnp.linalg.norm(ray, axis=-1, keepdims=True), 1e-9)
-            ray_local = jnp.einsum("mji,sj->msi", poses[:, :3, :3], ray)  # [M, S, 3]
-            in_closing, in_hand = segment_regions(
-                scene_local, ray_local, cfg.shadow_depth, widths, spec, cfg.obstacle_margin, sweep
-            )
-        else:
-            in_closing, in_hand = local_regions(scene_local, widths, spec, cfg.obstacle_margin, sweep)
-        collision_scene = jnp.any((in_closing | in_hand) & scene_mask, -1)
     below = below_plane(poses, widths, support_plane, spec, cfg)
-    keep = valid & ~collision_object & ~too_few & ~normal_bad & ~collision_scene & ~below
-    failed = [collision_object, too_few, normal_bad, collision_scene, below]
+    passed = valid & ~collision_object & ~too_few & ~normal_bad & ~below
+    if scene_points is None:
+        collision_scene = untested = jnp.zeros_like(collision_object)
+    else:
+        collision_scene, untested = _scene_test(poses, widths, passed, scene_points, scene_mask, spec, cfg, viewpoint)
+    keep = passed & ~collision_scene & ~untested
+    failed = [collision_object, too_few, normal_bad, collision_scene, below, untested]
     return FilterResult(keep, *(f & valid for f in failed), points_between)
+
+
+def _scene_test(poses, widths, passed, scene_points, scene_mask, spec: GripperSpec, cfg: FilterConfig, viewpoint):
+    """Filter (iv) on the first `cfg.scene_slots` candidates that passed the other tests: poses [M, 4, 4],
+    widths [M], passed bool[M], scene_points [S, 3], scene_mask [S], viewpoint [3] or None ->
+    (collision bool[M], untested bool[M]: passed but beyond the slots)."""
+    m = poses.shape[0]
+    slots = m if cfg.scene_slots is None else min(cfg.scene_slots, m)
+    order = jnp.argsort(~passed, stable=True)[:slots]  # passed first, in match order
+    hit = _scene_collisions(poses[order], widths[order], scene_points, scene_mask, spec, cfg, viewpoint)
+    tested = jnp.zeros(m, bool).at[order].set(passed[order])
+    collision = jnp.zeros(m, bool).at[order].set(hit & passed[order])
+    return collision, passed & ~tested
+
+
+def _scene_collisions(poses, widths, scene_points, scene_mask, spec: GripperSpec, cfg: FilterConfig, viewpoint):
+    """Whether the hand meets an obstacle point (or, with a viewpoint and cfg.shadow_depth, the space it
+    hides) at the grasp, along the approach, or between the fingers: poses [K, 4, 4], widths [K] -> bool[K]."""
+    scene_local = to_gripper_frame(scene_points, poses)
+    # The executed motion comes straight in along the approach axis: the fingers and palm are swept
+    # back over approach_clearance (every hand position on that path). At the grasp, an obstacle
+    # between the fingers would be squeezed too (the scene holds no point of the target itself).
+    sweep = cfg.approach_clearance if cfg.approach_steps > 1 else 0.0
+    if cfg.shadow_depth > 0.0 and viewpoint is not None:
+        ray = scene_points - viewpoint
+        ray = ray / jnp.maximum(jnp.linalg.norm(ray, axis=-1, keepdims=True), 1e-9)
+        ray_local = jnp.einsum("mji,sj->msi", poses[:, :3, :3], ray)  # [K, S, 3]
+        in_closing, in_hand = segment_regions(scene_local, ray_local, cfg.shadow_depth, widths, spec, cfg.obstacle_margin,
+                                              sweep)
+    else:
+        in_closing, in_hand = local_regions(scene_local, widths, spec, cfg.obstacle_margin, sweep)
+    return jnp.any((in_closing | in_hand) & scene_mask, -1)
 
 
 def below_plane(poses, widths, plane, spec: GripperSpec, cfg: FilterConfig = FilterConfig()) -> jax.Array:

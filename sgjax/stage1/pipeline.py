@@ -133,10 +133,12 @@ def _reason(counts: dict, cfg: Stage1Config) -> str:
         f"{counts['too_few_points']} have fewer than {cfg.filter.min_points} points between the fingers",
         f"{counts['normal_angle']} fail the {cfg.filter.max_normal_angle_deg:g} deg normal test",
     ]
-    if counts.get("collision_scene"):
-        parts.append(f"{counts['collision_scene']} collide with the scene")
     if counts.get("below_support"):
         parts.append(f"{counts['below_support']} reach below the support plane")
+    if counts.get("collision_scene"):
+        parts.append(f"{counts['collision_scene']} collide with the scene")
+    if counts.get("scene_untested"):
+        parts.append(f"{counts['scene_untested']} were beyond the scene test's {cfg.filter.scene_slots} slots")
     return f"all {counts['transferred']} transferred candidates were removed: " + ", ".join(parts)
 
 
@@ -152,10 +154,11 @@ def with_footprint(points: jax.Array, mask: jax.Array, plane: jax.Array) -> tupl
 
 
 @functools.partial(jax.jit, static_argnames=("cfg", "has_scene", "has_view"))
-def _pipeline(obj, obj_mask, scene, scene_mask, viewpoint, plane, scale, db: MatchDB, cfg: Stage1Config, has_scene: bool,
-              has_view: bool = True):
+def _pipeline(obj, obj_mask, scene, scene_mask, viewpoint, plane, scale, neighbours, db: MatchDB, cfg: Stage1Config,
+              has_scene: bool, has_view: bool = True):
     """Fixed-shape Stage 1 over B objects. obj [B, N, 3], scene [B, S, 3], viewpoint [B, 3], plane [B, 4],
-    scale [B] (observed points per kept object point)."""
+    scale [B] (observed points per kept object point), neighbours (index [B, N, k], ok [B, N, k]): each
+    object point's nearest neighbours (`knn_indices`)."""
     # A known viewpoint tells EMS which of the fitted surface the camera should have seen.
     ems_obj, ems_mask = with_footprint(obj, obj_mask, plane) if cfg.footprint else (obj, obj_mask)
     fit = jax.vmap(lambda p, m, v: _fit_one(p, m, cfg.ems, v if has_view else None))(ems_obj, ems_mask, viewpoint)
@@ -179,7 +182,7 @@ def _pipeline(obj, obj_mask, scene, scene_mask, viewpoint, plane, scale, db: Mat
         # Re-centring moves each grasp along its own closing axis: its local x shifts by as much.
         poses = poses.at[..., :3, 3].add(shift[..., None] * poses[..., :3, 0])
         local = local.at[..., 0].add(-shift[..., None])
-    normals = estimate_normals(obj, obj_mask, viewpoint, cfg.filter.normal_neighbours)
+    normals = estimate_normals(obj, obj_mask, viewpoint, neighbours=neighbours)
 
     def one(p, w, v, o, om, nrm, s, sm, pl, sc, lc, sq, view):
         s, sm = (s, sm) if has_scene else (None, None)
@@ -213,6 +216,12 @@ class Stage1:
         self.config = config
         self.match_db = MatchDB.from_db(self.db, config.match)
 
+    def off_table(self, points: np.ndarray, plane) -> np.ndarray:
+        """Which of points [N, 3] can be obstacles: bool [N], False within `table_band` above the support
+        plane plane [4] (None: all True). Filter (v) judges the table exactly; the planner drops these
+        points once per scene, before each object's crop, which repeats this test."""
+        return _off_table(points, _planes(plane, 1)[0], self.config.table_band)
+
     def _crop_scene(self, scene: np.ndarray, obj: np.ndarray, seed: int, plane: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The obstacles near the object: scene points within scene_margin of its box that are not the
         object's own (farther than target_exclusion from every object point) nor the table (within
@@ -222,8 +231,7 @@ class Stage1:
         cfg = self.config
         lo, hi = obj.min(0) - cfg.scene_margin, obj.max(0) + cfg.scene_margin
         near = scene[np.all((scene >= lo) & (scene <= hi), axis=1)]
-        if np.any(plane[:3] != 0.0):
-            near = near[near @ plane[:3] + plane[3] >= cfg.table_band]
+        near = near[_off_table(near, plane, cfg.table_band)]
         if len(near):
             own = cKDTree(obj).query(near, distance_upper_bound=cfg.target_exclusion)[0] <= cfg.target_exclusion
             near = near[~own]
@@ -270,8 +278,10 @@ class Stage1:
         view = np.zeros((b, 3), np.float32) if viewpoints is None else np.asarray(viewpoints, np.float32).reshape(b, 3)
         # Filter (ii) counts the observed points between the fingers, not the subsample's.
         scale = np.array([len(c) for c in clouds], np.float32) / np.maximum(obj_mask.sum(1), 1)
+        neighbours = knn_indices(obj, obj_mask, cfg.filter.normal_neighbours)
         out = _pipeline(
-            obj, obj_mask, scene, scene_mask, view, plane, scale, self.match_db, cfg, has_scene, viewpoints is not None
+            obj, obj_mask, scene, scene_mask, view, plane, scale, neighbours, self.match_db, cfg, has_scene,
+            viewpoints is not None,
         )
         out = jax.tree_util.tree_map(np.asarray, out)
         return [_empty({"transferred": 0, "kept": 0}, bad[i], None) if i in bad else self._unpack(out, i) for i in range(b)]
@@ -330,6 +340,32 @@ class Stage1:
         cloud = pointcloud.as_cloud(object_points, "object cloud")  # raises for empty/NaN/too few/flat clouds
         views = None if viewpoint is None else np.asarray(viewpoint, np.float32)[None]
         return self.batch([cloud], None if scene_points is None else [scene_points], views, seed, support_plane)[0]
+
+
+def knn_indices(points: np.ndarray, mask: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """`filters.nearest_neighbours` on the host with a k-d tree: points [B, N, 3], mask [B, N] ->
+    (index int32 [B, N, k], ok bool [B, N, k]), k capped at N. Same sets up to ties in distance."""
+    from scipy.spatial import cKDTree
+
+    b, n, _ = points.shape
+    k = min(k, n)
+    index, ok = np.zeros((b, n, k), np.int32), np.zeros((b, n, k), bool)
+    for i in range(b):
+        valid = np.flatnonzero(mask[i])
+        kk = min(k, len(valid))
+        if kk == 0:
+            continue
+        _, j = cKDTree(points[i, valid]).query(points[i], kk)
+        index[i, :, :kk] = valid[np.asarray(j).reshape(n, kk)]
+        ok[i, :, :kk] = True
+    return index, ok
+
+
+def _off_table(points: np.ndarray, plane: np.ndarray, band: float) -> np.ndarray:
+    """points [N, 3], a unit-normal plane [4] from `_planes` -> bool [N]: not within band above it."""
+    if not np.any(plane[:3] != 0.0):  # NO_PLANE
+        return np.ones(len(points), bool)
+    return points @ plane[:3] + plane[3] >= band
 
 
 def _planes(support_plane, b: int) -> np.ndarray:
