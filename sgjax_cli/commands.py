@@ -171,12 +171,15 @@ def _cmd_train(args: argparse.Namespace) -> int:
     hand = {"hand_points": args.hand_points} if args.hand_points else {}
     if hand and args.network != "ernet":
         return _fail("--hand-points is an E-RNet input; the PointNetGPD baseline sees its closing region only")
+    data = args.data[0] if len(args.data) == 1 else args.data
     if args.synthetic:
-        os.makedirs(args.data, exist_ok=True)
-        if dataset.shard_paths(args.data):
-            return _fail(f"--synthetic: {args.data} already holds shards")
+        if len(args.data) > 1:
+            return _fail("--synthetic writes to one --data directory")
+        os.makedirs(data, exist_ok=True)
+        if dataset.shard_paths(data):
+            return _fail(f"--synthetic: {data} already holds shards")
         samples = dataset.synthetic_samples(args.synthetic, args.seed)
-        print(f"wrote {args.synthetic} synthetic samples to {dataset.write_shard(os.path.join(args.data, 'synthetic_000'), samples)}")
+        print(f"wrote {args.synthetic} synthetic samples to {dataset.write_shard(os.path.join(data, 'synthetic_000'), samples)}")
     config = trainer.TrainConfig(
         epochs=args.epochs,
         batch_size=args.batch_size,
@@ -188,7 +191,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         model={"paper": network.paper, "light": network.light, "tiny": network.tiny}[args.model](**hand),
     )
     try:
-        result = run(args.data, args.out, config, progress=not args.quiet)
+        result = run(data, args.out, config, progress=not args.quiet)
     except (dataset.DatasetError, ValueError) as exc:
         return _fail(str(exc))
     except KeyboardInterrupt:
@@ -202,13 +205,14 @@ def _cmd_score_data(args: argparse.Namespace) -> int:
     from train import dataset, judgement, score_data
 
     try:
-        result = score_data.score_directory(args.data, args.model, args.network, args.batch_size)
+        result = score_data.score_directory(args.data[0] if len(args.data) == 1 else args.data, args.model, args.network,
+                                            args.batch_size)
     except (dataset.DatasetError, ValueError, FileNotFoundError) as exc:
         return _fail(str(exc))
     if args.json:
         print(json.dumps(result, indent=1))
         return 0
-    print(f"{args.network} ({args.model or 'shipped default'}) on {args.data}:")
+    print(f"{args.network} ({args.model or 'shipped default'}) on {', '.join(args.data)}:")
     for name, metrics in result.items():
         if metrics is None:
             continue
@@ -248,7 +252,8 @@ def _cmd_label(args: argparse.Namespace) -> int:
         )
         stage1 = Stage1(load_database(DBConfig.small()), config.stage1) if args.small_db else None
         summary = label.label(
-            args.out, args.scenes, config, stage1=stage1, backend=args.backend, nthread=args.threads, progress=not args.quiet
+            args.out, args.scenes, config, stage1=stage1, backend=args.backend, nthread=args.threads, progress=not args.quiet,
+            first_scene=args.first_scene,
         )
     except (ValueError, FileNotFoundError) as exc:
         return _fail(str(exc))
@@ -531,7 +536,8 @@ def build_parser() -> argparse.ArgumentParser:
             p.add_argument("--json", action="store_true", help="one JSON object per line")
 
     p = sub.add_parser("train", help="train E-RNet on labelled grasp shards (an interrupted run resumes)")
-    p.add_argument("--data", required=True, help="directory of .npz sample shards (train/dataset.py format)")
+    p.add_argument("--data", required=True, nargs="+", metavar="DIR",
+                   help="directories of .npz sample shards (train/dataset.py format); several must hold disjoint scenes")
     p.add_argument("--out", required=True, help="run directory: checkpoints/, metrics.json/.csv, curves.png")
     p.add_argument("--epochs", type=int, default=100)
     p.add_argument("--batch-size", type=int, default=128)
@@ -560,7 +566,8 @@ def build_parser() -> argparse.ArgumentParser:
         "score-data",
         help="judge a trained scorer on a labelled directory: AUC overall and per source, calibration, collisions' scores",
     )
-    p.add_argument("--data", required=True, help="a labelled directory (sgjax label --out)")
+    p.add_argument("--data", required=True, nargs="+", metavar="DIR",
+                   help="labelled directories (sgjax label --out); several must hold disjoint scenes")
     p.add_argument("--model", default=None, help="a `sgjax train` run directory (default: the shipped checkpoint)")
     p.add_argument("--network", choices=("ernet", "pointnetgpd"), default="ernet")
     p.add_argument("--batch-size", type=int, default=128)
@@ -569,6 +576,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("label", help="label grasps in simulated scenes for E-RNet training (resumable)")
     p.add_argument("--scenes", type=int, required=True, help="scenes 0..N-1 (rerun with a larger N to extend)")
+    p.add_argument(
+        "--first-scene", type=int, default=0, metavar="S",
+        help="label scenes S..N-1 only: continue a series in a new directory (train reads several)",
+    )
     p.add_argument("--out", required=True, help="directory of .npz shards (train/dataset.py format)")
     p.add_argument("--objects", default="seen", help="object set name or a folder of meshes (default: seen)")
     p.add_argument("--backend", default="cpu", help=BACKEND_HELP)

@@ -121,6 +121,21 @@ def test_resume_gives_the_same_data_as_one_run(setup, whole, tmp_path):
     assert os.path.getmtime(tmp_path / "scenes-000001-000002.npz") == before
 
 
+def test_a_series_continued_in_a_second_directory_reads_as_one(setup, whole, tmp_path):
+    objects, labellers = setup
+    first, second = tmp_path / "first", tmp_path / "second"
+    label(first, 1, CONFIG, objects=objects, stage1=labellers.stage1, progress=False)
+    label(second, 2, CONFIG, objects=objects, stage1=labellers.stage1, progress=False, first_scene=1)
+    assert [p for p in os.listdir(second) if p.endswith(".npz")] == ["scenes-000001-000002.npz"]
+    a, b = dataset.read_shards(whole[0]), dataset.read_shards([first, second])
+    for key in dataset.SAMPLE_FIELDS:
+        np.testing.assert_array_equal(a[key], b[key])
+    with pytest.raises(dataset.DatasetError, match="same scenes"):
+        dataset.read_shards([whole[0], second])  # scene 1 twice
+    with pytest.raises(ValueError, match="first_scene"):
+        label(second, 1, CONFIG, objects=objects, stage1=labellers.stage1, progress=False, first_scene=1)
+
+
 def test_summary_counts_trials_and_positives(whole):
     out, summary = whole
     samples = dataset.read_shards(out)

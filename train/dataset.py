@@ -161,16 +161,34 @@ def shard_paths(directory: str | os.PathLike) -> list[str]:
     return [p for p in paths if ".tmp-" not in os.path.basename(p)]
 
 
-def read_shards(directory: str | os.PathLike, crop: str = "enlarged") -> Samples:
-    """All shards of a directory concatenated (sorted by file name, so the order is deterministic), as
-    SAMPLE_FIELDS: label shards are cropped (`crop_label_shard`, cached), sample shards read as they are."""
-    if not os.path.isdir(directory):
-        raise DatasetError(f"{directory}: not a directory")
-    paths = shard_paths(directory)
-    if not paths:
-        raise DatasetError(f"{directory}: no {SHARD_SUFFIX} shards")
-    spec = directory_spec(directory)
-    parts = [crop_label_shard(p, spec, crop) if is_label_shard(p) else read_shard(p) for p in paths]
+def read_shards(directories: str | os.PathLike | Sequence[str | os.PathLike], crop: str = "enlarged") -> Samples:
+    """All shards of a directory, or of several, concatenated (directories in the order given, shards
+    sorted by file name, so the order is deterministic), as SAMPLE_FIELDS: label shards are cropped
+    (`crop_label_shard`, cached), sample shards read as they are. Several directories must hold
+    disjoint scenes (no scene seed in two of them: the same scene twice would be counted twice and
+    could straddle the held-out split) made with one gripper spec; DatasetError names the clash."""
+    dirs = [directories] if isinstance(directories, (str, os.PathLike)) else list(directories)
+    if not dirs:
+        raise DatasetError("no data directories given")
+    parts, scenes, specs = [], {}, {}
+    for directory in dirs:
+        if not os.path.isdir(directory):
+            raise DatasetError(f"{directory}: not a directory")
+        paths = shard_paths(directory)
+        if not paths:
+            raise DatasetError(f"{directory}: no {SHARD_SUFFIX} shards")
+        spec = specs[os.fspath(directory)] = directory_spec(directory)
+        part = [crop_label_shard(p, spec, crop) if is_label_shard(p) else read_shard(p) for p in paths]
+        part = {k: np.concatenate([p[k] for p in part]) for k in SAMPLE_FIELDS}
+        own = set(np.unique(part["scene_seed"]).tolist())
+        for other, theirs in scenes.items():
+            if own & theirs:
+                raise DatasetError(f"{directory} and {other} hold {len(own & theirs)} of the same scenes (scene seeds); "
+                                   "give directories of disjoint scenes (sgjax label --first-scene)")
+        scenes[os.fspath(directory)] = own
+        parts.append(part)
+    if len(set(specs.values())) > 1:
+        raise DatasetError(f"the directories were made with different gripper specs: {specs}")
     return {k: np.concatenate([p[k] for p in parts]) for k in SAMPLE_FIELDS}
 
 

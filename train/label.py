@@ -399,14 +399,17 @@ def label(
     backend: str = "cpu",
     nthread: int = 0,
     progress: bool = True,
+    first_scene: int = 0,
 ) -> LabelSummary:
-    """Label scenes 0..n_scenes-1 into `out_dir`, skipping scenes already there; -> the summary.
+    """Label scenes first_scene..n_scenes-1 into `out_dir`, skipping scenes already there; -> the summary.
 
     objects: prepared ObjectAssets (default: `load_object_set(config.object_set)`); stage1: a Stage1
     (default: the full primitive database). Raises ValueError if out_dir holds data of another config.
+    first_scene > 0 continues a series of scenes in a new directory (e.g. after a code change that
+    changes the config): training reads several directories of one seed if their scenes are disjoint.
     """
-    if n_scenes < 1:
-        raise ValueError(f"n_scenes must be >= 1, got {n_scenes}")
+    if not 0 <= first_scene < n_scenes:
+        raise ValueError(f"need 0 <= first_scene < n_scenes, got first_scene {first_scene} and n_scenes {n_scenes}")
     check_backend(backend)
     out_dir = os.fspath(out_dir)
     _check_config(out_dir, config)
@@ -428,12 +431,13 @@ def label(
         raise ValueError(f"object set {config.object_set!r} has no object left to train on besides the held-out ones")
     labellers = Labellers.make(config, stage1)
     done = _covered(out_dir)
-    todo = _runs([i for i in range(n_scenes) if i not in done], config.scenes_per_shard)
+    todo = _runs([i for i in range(first_scene, n_scenes) if i not in done], config.scenes_per_shard)
     bar = None
     if progress:
         from tqdm import tqdm
 
-        bar = tqdm(total=n_scenes, initial=n_scenes - sum(e - s for s, e in todo), unit="scene", desc="label")
+        total = n_scenes - first_scene
+        bar = tqdm(total=total, initial=total - sum(e - s for s, e in todo), unit="scene", desc="label")
     for start, end in todo:
         began = time.perf_counter()
         parts, clouds, stats = [], [], []

@@ -11,6 +11,7 @@ held-out objects only, and the rest.
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
 from typing import Any
 
 import jax
@@ -34,8 +35,8 @@ def load_scorer(model: str | os.PathLike | None, network: str = "ernet"):
     raise ValueError(f"network must be 'ernet' or 'pointnetgpd', got {network!r}")
 
 
-def score_directory(data: str | os.PathLike, model=None, network: str = "ernet", batch_size: int = 128) -> dict[str, Any]:
-    """Metrics of a scorer on every valid sample of a labelled directory -> {"all", "held_out_objects",
+def score_directory(data: str | os.PathLike | Sequence[str | os.PathLike], model=None, network: str = "ernet", batch_size: int = 128) -> dict[str, Any]:
+    """Metrics of a scorer on every valid sample of a labelled directory (or several, of disjoint scenes) -> {"all", "held_out_objects",
     "other"}: each `trainer.evaluate_params`' output (summed metrics and "judgement"), or None when
     the group is empty."""
     scorer, make_steps = load_scorer(model, network)

@@ -17,7 +17,7 @@ take the run directory as their `model`.
 from __future__ import annotations
 
 import os
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
 from flax import nnx
@@ -77,14 +77,14 @@ def make_steps(graphdef: nnx.GraphDef, config: TrainConfig):
 
 
 def train(
-    data: str | os.PathLike | Mapping[str, np.ndarray],
+    data: str | os.PathLike | Sequence[str | os.PathLike] | Mapping[str, np.ndarray],
     run_dir: str | os.PathLike,
     config: TrainConfig | None = None,
     *,
     progress: bool = True,
     on_step: Callable[[int, int], None] | None = None,
 ) -> TrainResult:
-    """Train PointNetGPD on shards in `data` (a directory, or validated columns) into `run_dir`.
+    """Train PointNetGPD on shards in `data` (a directory, several of disjoint scenes, or validated columns) into `run_dir`.
 
     config: a TrainConfig whose `model` is a PointNetGPDConfig (None: `default_config()`). Resumes
     like `train.trainer.train`. Writes run_dir/{checkpoints/, metrics.json, metrics.csv, curves.png}

@@ -28,7 +28,7 @@ import math
 import os
 import queue
 import threading
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any
 
 import jax
@@ -401,11 +401,11 @@ def _checkpoint_manager(run_dir: str):
 EVAL_FIELDS = (*dataset.TRAIN_FIELDS, "source", "outcome", "scene_seed")  # what the judgement metrics need
 
 
-def _load_data(data: str | os.PathLike | Mapping[str, np.ndarray], config: TrainConfig):
+def _load_data(data: str | os.PathLike | Sequence[str | os.PathLike] | Mapping[str, np.ndarray], config: TrainConfig):
     """-> (train set, held-out scenes, held-out objects): columns of the valid samples. Held-out objects
     are never trained on, nor mixed into the held-out scenes' metrics."""
     crop = getattr(config.model, "crop", "enlarged")
-    samples = dataset.read_shards(data, crop) if isinstance(data, (str, os.PathLike)) else dataset.validate(data, "data")
+    samples = dataset.validate(data, "data") if isinstance(data, Mapping) else dataset.read_shards(data, crop)
     objects = dataset.select(samples, np.flatnonzero(samples["valid"] & samples["held_out_object"]))
     samples = dataset.select(samples, np.flatnonzero(samples["valid"] & ~samples["held_out_object"]))
     if dataset.num_samples(samples) == 0:
@@ -420,14 +420,14 @@ def _load_data(data: str | os.PathLike | Mapping[str, np.ndarray], config: Train
 
 
 def train(
-    data: str | os.PathLike | Mapping[str, np.ndarray],
+    data: str | os.PathLike | Sequence[str | os.PathLike] | Mapping[str, np.ndarray],
     run_dir: str | os.PathLike,
     config: TrainConfig = TrainConfig(),
     *,
     progress: bool = True,
     on_step: Callable[[int, int], None] | None = None,
 ) -> TrainResult:
-    """Train E-RNet on shards in `data` (a directory, or validated columns), writing to `run_dir`.
+    """Train E-RNet on shards in `data` (a directory, several of disjoint scenes, or validated columns), writing to `run_dir`.
 
     Resumes from the last epoch checkpoint in `run_dir` if there is one (same settings required,
     `epochs` may grow). `on_step(epoch, step)` is called after every training step (e.g. logging).
@@ -442,7 +442,7 @@ def train(
 def run_training(
     model: nnx.Module,
     steps: Callable[[nnx.GraphDef, TrainConfig], tuple],
-    data: str | os.PathLike | Mapping[str, np.ndarray],
+    data: str | os.PathLike | Sequence[str | os.PathLike] | Mapping[str, np.ndarray],
     run_dir: str | os.PathLike,
     config: TrainConfig,
     *,
