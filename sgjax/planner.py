@@ -50,6 +50,7 @@ from sgjax.stage2 import ernet
 from sgjax.geometry import gripper, pointcloud
 from sgjax.geometry.gripper import GripperSpec
 from sgjax.stage1.database import PrimitiveDB
+from sgjax.utils import exported
 from sgjax.utils.cache import enable_compilation_cache
 from sgjax.stage1.pipeline import Candidates, Stage1, Stage1Config
 from sgjax.stage2.scene_cloud import SceneCloudConfig
@@ -258,7 +259,6 @@ def select_grasp(
     }
 
 
-@functools.partial(jax.jit, static_argnames=("graphdef", "spec"))
 def _stage2(graphdef, state, scene, scene_mask, poses, widths, slots, key, thresholds, use_refinement, *, spec):
     """One compiled Stage 2: E-RNet scores of the candidate slots (scene [S, 3] + mask, poses [C, 4, 4],
     widths [C], slots bool[C]) and the decision."""
@@ -478,9 +478,12 @@ class Planner:
         widths[:m] = np.concatenate([c.widths for c in candidates])[offsets[obj] + row]
         scene_pad, scene_mask = self._scene(scene, seed)
         thresholds = np.array([cfg.eval_threshold, cfg.refine_threshold], np.float32)
-        out, choice = _stage2(
-            self.graphdef, self.state, scene_pad, scene_mask, poses, widths, np.arange(slots) < m,
-            jax.random.key(seed), thresholds, np.bool_(cfg.use_refinement), spec=cfg.spec,
+        # Exported once to the cache, keyed by the network's class and config (which fix its graphdef).
+        out, choice = exported.call(
+            "stage2", functools.partial(_stage2, self.graphdef, spec=cfg.spec),
+            (self.state, scene_pad, scene_mask, poses, widths, np.arange(slots) < m, jax.random.key(seed), thresholds,
+             np.bool_(cfg.use_refinement)),
+            (type(self.model).__qualname__, repr(self.model.config), cfg.spec),
         )
         out, choice = jax.tree.map(np.asarray, (out, choice))
         t2 = time.perf_counter()
@@ -545,9 +548,7 @@ def stage2_subset(counts, budget: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _compile_count() -> int:
-    from sgjax.stage1.pipeline import _pipeline
-
-    return _pipeline._cache_size() + _stage2._cache_size()
+    return exported.compiled_programs()
 
 
 # ---------------------------------------------------------------------------------------------

@@ -179,9 +179,9 @@ def test_more_candidates_than_stage2_takes_keeps_each_objects_best():
 
 
 def test_deterministic_and_never_recompiles(planner, scene, first_plan):
-    from sgjax.stage1.pipeline import _pipeline
+    from sgjax.utils.exported import compiled_programs
 
-    sizes = (_pipeline._cache_size(), planner_mod._stage2._cache_size())
+    sizes = compiled_programs()
     again = planner.plan(*scene, viewpoint=CAMERA, seed=0)
     for key in ("eval_prob", "refine_prob", "valid", "object_candidate"):
         np.testing.assert_array_equal(again.scores[key], first_plan.scores[key])
@@ -194,7 +194,7 @@ def test_deterministic_and_never_recompiles(planner, scene, first_plan):
     assert one.n_candidates < first_plan.n_candidates and set(one.scores["target"]) == {0}
     target = planner.plan_target(points, points[labels == 1], viewpoint=CAMERA, seed=0)
     assert target.n_candidates > 0 and set(target.scores["target"]) <= {0}
-    assert (_pipeline._cache_size(), planner_mod._stage2._cache_size()) == sizes
+    assert compiled_programs() == sizes
 
 
 def test_forced_scores_give_each_decision(small_db, scene):

@@ -557,14 +557,14 @@ def test_stage1_keeps_hands_out_of_the_space_a_neighbour_hides(stage):
 
 
 def test_no_recompile_and_deterministic(stage):
-    from sgjax.stage1.pipeline import _pipeline
+    from sgjax.utils.exported import compiled_programs
 
     cloud, _ = single_view(Primitive("cylinder", (0.045, 0.045, 0.1)))
     a = stage(cloud, viewpoint=CAMERA)
-    size = _pipeline._cache_size()
+    size = compiled_programs()
     b = stage(cloud + 0.001, viewpoint=CAMERA)
     c = stage(cloud, viewpoint=CAMERA)
-    assert _pipeline._cache_size() == size
+    assert compiled_programs() == size
     np.testing.assert_array_equal(a.poses, c.poses)
     assert len(b) > 0
 

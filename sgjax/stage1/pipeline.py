@@ -34,6 +34,7 @@ from sgjax.stage1.filters import (
 )
 from sgjax.stage1.ems import EMSConfig, FitResult, _fit_one
 from sgjax.geometry.gripper import GripperSpec, recentre_and_widen, to_gripper_frame
+from sgjax.utils import exported
 from sgjax.utils.cache import enable_compilation_cache
 from sgjax.stage1.matching import MatchConfig, MatchDB, match, transfer_grasps
 from sgjax.stage1.database import DBConfig, PrimitiveDB, load_database
@@ -153,7 +154,6 @@ def with_footprint(points: jax.Array, mask: jax.Array, plane: jax.Array) -> tupl
     return jnp.concatenate([points, projected], 1), jnp.concatenate([mask, mask & above], 1)
 
 
-@functools.partial(jax.jit, static_argnames=("cfg", "has_scene", "has_view"))
 def _pipeline(obj, obj_mask, scene, scene_mask, viewpoint, plane, scale, neighbours, db: MatchDB, cfg: Stage1Config,
               has_scene: bool, has_view: bool = True):
     """Fixed-shape Stage 1 over B objects. obj [B, N, 3], scene [B, S, 3], viewpoint [B, 3], plane [B, 4],
@@ -279,9 +279,11 @@ class Stage1:
         # Filter (ii) counts the observed points between the fingers, not the subsample's.
         scale = np.array([len(c) for c in clouds], np.float32) / np.maximum(obj_mask.sum(1), 1)
         neighbours = knn_indices(obj, obj_mask, cfg.filter.normal_neighbours)
-        out = _pipeline(
-            obj, obj_mask, scene, scene_mask, view, plane, scale, neighbours, self.match_db, cfg, has_scene,
-            viewpoints is not None,
+        has_view = viewpoints is not None
+        # Exported once to the cache (jit-compiled as ever): a new process skips the ~10-40 s of tracing EMS.
+        out = exported.call(
+            "stage1", functools.partial(_pipeline, cfg=cfg, has_scene=has_scene, has_view=has_view),
+            (obj, obj_mask, scene, scene_mask, view, plane, scale, neighbours, self.match_db), (cfg, has_scene, has_view),
         )
         out = jax.tree_util.tree_map(np.asarray, out)
         return [_empty({"transferred": 0, "kept": 0}, bad[i], None) if i in bad else self._unpack(out, i) for i in range(b)]
