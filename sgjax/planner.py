@@ -20,8 +20,9 @@ picks the grasp (`decide`):
 
 `use_refinement=False` skips step 2 (the paper's "without the refinement branch" ablation).
 
-Fixed shapes, so repeated plans never recompile: Stage 2 always scores `max_stage2_candidates`
-slots (padded and masked) on `scene_cloud.max_points` scene points (voxel grid + seeded uniform subsample,
+Fixed shapes, so repeated plans never recompile: Stage 2 scores the candidates in the smallest of a few
+power-of-two batches that holds them (`stage2_min_slots` up to `max_stage2_candidates`, padded and
+masked; the first plan compiles every size) on `scene_cloud.max_points` scene points (voxel grid + seeded uniform subsample,
 padded and masked, made as the labelling pipeline makes it: `pointcloud.scene_cloud`). Stage 1 runs
 objects in batches of the sizes in `stage1_batch_sizes` (default 4: 10 objects = 4 + 4 + 2 padded), so at most that many
 Stage-1 shapes are ever compiled. When Stage 1 yields more candidates than Stage 2 takes, every
@@ -74,8 +75,12 @@ class PlannerConfig:
     stage1: Stage-1 settings (fit, matching, coarse filter, gripper spec; the spec is also Stage 2's).
     eval_threshold, refine_threshold: the paper's 0.7 (a score must exceed it).
     use_refinement: False = the paper's "w/o RNet" ablation (evaluated grasps only).
-    max_stage2_candidates: fixed Stage-2 batch; more candidates -> each object's best-matched first
+    max_stage2_candidates: the largest Stage-2 batch; more candidates -> each object's best-matched first
         (round-robin over objects in match order).
+    stage2_min_slots: Stage 2 scores the candidates in the smallest power-of-two batch of at least this
+        many slots that holds them (up to max_stage2_candidates): a scene with 60 candidates costs a
+        64-slot E-RNet call, not a 512-slot one. Each candidate's scores do not depend on the batch size.
+        The first plan compiles every size, so later plans never stall. max_stage2_candidates: one size.
     min_object_points: objects with fewer visible points are skipped (the reason is recorded).
     scene_cloud: the Stage-2 scene cloud (`SceneCloudConfig`: optional crop, voxel grid, seeded
         uniform subsample to a fixed size, padded and masked), made as in labelling so that E-RNet
@@ -96,6 +101,7 @@ class PlannerConfig:
     refine_threshold: float = 0.7
     use_refinement: bool = True
     max_stage2_candidates: int = 512
+    stage2_min_slots: int = 64
     min_object_points: int = 50
     scene_cloud: SceneCloudConfig = SceneCloudConfig()
     support_plane: tuple[float, float, float, float] | None = None
@@ -109,6 +115,8 @@ class PlannerConfig:
             raise ValueError(f"stage1_batch_sizes must be positive integers, got {self.stage1_batch_sizes}")
         if self.max_stage2_candidates < 1:
             raise ValueError("max_stage2_candidates must be >= 1")
+        if self.stage2_min_slots < 1:
+            raise ValueError(f"stage2_min_slots must be >= 1, got {self.stage2_min_slots}")
         if self.min_object_points < pointcloud.MIN_POINTS:
             raise ValueError(f"min_object_points must be >= {pointcloud.MIN_POINTS} (a superquadric fit needs that many)")
         if self.support_plane is not None:
@@ -124,6 +132,19 @@ class PlannerConfig:
     @property
     def spec(self) -> GripperSpec:
         return self.stage1.spec
+
+    @property
+    def stage2_sizes(self) -> tuple[int, ...]:
+        """The Stage-2 batch sizes: powers of two from stage2_min_slots, capped by max_stage2_candidates."""
+        sizes, size = [], 1 << max(self.stage2_min_slots - 1, 0).bit_length()
+        while size < self.max_stage2_candidates:
+            sizes.append(size)
+            size *= 2
+        return (*sizes, self.max_stage2_candidates)
+
+    def stage2_slots(self, m: int) -> int:
+        """The Stage-2 batch size for m candidates (m <= max_stage2_candidates)."""
+        return next(size for size in self.stage2_sizes if size >= m)
 
 
 @dataclasses.dataclass
@@ -353,6 +374,7 @@ class Planner:
         # Restored checkpoints are committed to a device and fresh models are not; committedness is part
         # of jit's cache key, so commit both: every Planner with this network shares one compiled Stage 2.
         self.state = jax.device_put(state, jax.devices()[0])
+        self._stage2_ready = False  # whether every Stage-2 batch size has been compiled
 
     # -- public entry points ------------------------------------------------------------------
 
@@ -470,7 +492,8 @@ class Planner:
             return self._empty(reason, infos, start, candidates, timing)
         obj, rank = stage2_subset([len(k) for k in kept], cfg.max_stage2_candidates)
         row = np.asarray([kept[o][r] for o, r in zip(obj, rank)], np.int64).reshape(-1)
-        m, slots = len(obj), cfg.max_stage2_candidates
+        m = len(obj)
+        slots = cfg.stage2_slots(m)
         offsets = np.cumsum([0] + [len(c) for c in candidates])[:-1]
         poses = np.tile(np.eye(4, dtype=np.float32), (slots, 1, 1))
         widths = np.full(slots, np.nan, np.float32)  # padding slots: invalid for E-RNet, and masked
@@ -478,14 +501,13 @@ class Planner:
         widths[:m] = np.concatenate([c.widths for c in candidates])[offsets[obj] + row]
         scene_pad, scene_mask = self._scene(scene, seed)
         thresholds = np.array([cfg.eval_threshold, cfg.refine_threshold], np.float32)
-        # Exported once to the cache, keyed by the network's class and config (which fix its graphdef).
-        out, choice = exported.call(
-            "stage2", functools.partial(_stage2, self.graphdef, spec=cfg.spec),
-            (self.state, scene_pad, scene_mask, poses, widths, np.arange(slots) < m, jax.random.key(seed), thresholds,
-             np.bool_(cfg.use_refinement)),
-            (type(self.model).__qualname__, repr(self.model.config), cfg.spec),
-        )
-        out, choice = jax.tree.map(np.asarray, (out, choice))
+        if not self._stage2_ready:  # compile every batch size now, so that no later plan stalls
+            for size in cfg.stage2_sizes:
+                if size != slots:
+                    empty = np.tile(np.eye(4, dtype=np.float32), (size, 1, 1)), np.full(size, np.nan, np.float32)
+                    self._score(scene_pad, scene_mask, *empty, np.zeros(size, bool), seed, thresholds)
+            self._stage2_ready = True
+        out, choice = self._score(scene_pad, scene_mask, poses, widths, np.arange(slots) < m, seed, thresholds)
         t2 = time.perf_counter()
         scores = {
             "eval_prob": out["eval_prob"][:m],
@@ -520,6 +542,18 @@ class Planner:
             initial_pose=initial.copy(),
             objects=infos,
         )
+
+    def _score(self, scene_pad, scene_mask, poses, widths, slots, seed: int, thresholds):
+        """One Stage-2 call (`_stage2`) -> (scores, choice) as NumPy. Exported once to the cache, keyed by
+        the network's class and config (which fix its graphdef)."""
+        cfg = self.config
+        out = exported.call(
+            "stage2", functools.partial(_stage2, self.graphdef, spec=cfg.spec),
+            (self.state, scene_pad, scene_mask, poses, widths, slots, jax.random.key(seed), thresholds,
+             np.bool_(cfg.use_refinement)),
+            (type(self.model).__qualname__, repr(self.model.config), cfg.spec),
+        )
+        return jax.tree.map(np.asarray, out)
 
     def _why_not(self, scores: dict, m: int) -> str:
         cfg = self.config

@@ -197,6 +197,24 @@ def test_deterministic_and_never_recompiles(planner, scene, first_plan):
     assert compiled_programs() == sizes
 
 
+def test_stage2_batch_sizes_do_not_change_scores(planner, small_db, scene, first_plan):
+    assert PlannerConfig().stage2_sizes == (64, 128, 256, 512)
+    assert PlannerConfig(max_stage2_candidates=300, stage2_min_slots=100).stage2_sizes == (128, 256, 300)
+    assert PlannerConfig().stage2_slots(65) == 128 and PlannerConfig().stage2_slots(512) == 512
+    with pytest.raises(ValueError, match="stage2_min_slots"):
+        PlannerConfig(stage2_min_slots=0)
+    # One 512-slot batch (the old fixed shape) against the smallest that fits: the same scores and choice.
+    whole = Planner(planner.model, small_db, dataclasses.replace(CONFIG, stage2_min_slots=512))
+    assert whole.config.stage2_sizes == (512,)
+    points, labels = scene
+    narrow = planner.plan_target(points, points[labels == 1], viewpoint=CAMERA, seed=0)
+    wide = whole.plan_target(points, points[labels == 1], viewpoint=CAMERA, seed=0)
+    assert 0 < narrow.n_candidates <= 256 and narrow.n_candidates == wide.n_candidates
+    for key in ("eval_prob", "refine_prob"):
+        np.testing.assert_allclose(wide.scores[key], narrow.scores[key], atol=1e-5)
+    assert (wide.kind, wide.candidate_index) == (narrow.kind, narrow.candidate_index)
+
+
 def test_forced_scores_give_each_decision(small_db, scene):
     """Heads that ignore their input: every valid candidate has the same scores, so the first valid wins."""
     refine_model = rigged([0.0, -5.0], [-5.0, -5.0, 5.0])  # eval 0.007, refine variant 2: 0.993
