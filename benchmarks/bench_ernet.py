@@ -24,6 +24,7 @@ from flax import nnx
 from sgjax.stage2 import crops, ernet
 from sgjax.geometry import synthetic
 from sgjax.stage2.ernet import ERNet, ERNetConfig
+from sgjax.stage2.pointnet2 import BackboneConfig, SetAbstractionConfig
 from sgjax.geometry.gripper import GripperSpec
 from sgjax.geometry.superquadric import Superquadric
 from train import dataset, trainer
@@ -34,6 +35,15 @@ CONFIGS = {
     "paper": ERNetConfig.paper,
     "light-swept": lambda: ERNetConfig.light(hand_points=32),  # the swept input (hand feature)
     "light-swept128": lambda: ERNetConfig.light(hand_points=128),
+    # Between light and paper: twice light's centroids, neighbours and widths, the random sampler.
+    "medium-swept": lambda: ERNetConfig.light(
+        hand_points=32, n_points=768, n_anchor=192, anchor_mlp=(256,), eval_hidden=(128, 64), refine_hidden=(128, 64),
+        backbone=BackboneConfig(
+            (SetAbstractionConfig(64, 0.015, 16, (32, 64)), SetAbstractionConfig(16, 0.04, 16, (64, 128))),
+            ((128,), (128, 128)), sampler="random",
+        ),
+    ),
+    "paper-swept": lambda: ERNetConfig.paper(hand_points=32),
 }
 
 
