@@ -171,10 +171,10 @@ def _cmd_train(args: argparse.Namespace) -> int:
     hand = {"hand_points": args.hand_points} if args.hand_points else {}
     if hand and args.network != "ernet":
         return _fail("--hand-points is an E-RNet input; the PointNetGPD baseline sees its closing region only")
-    data = args.data[0] if len(args.data) == 1 else args.data
     if args.synthetic:
         if len(args.data) > 1:
             return _fail("--synthetic writes to one --data directory")
+        data = args.data[0]
         os.makedirs(data, exist_ok=True)
         if dataset.shard_paths(data):
             return _fail(f"--synthetic: {data} already holds shards")
@@ -191,7 +191,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         model={"paper": network.paper, "light": network.light, "tiny": network.tiny}[args.model](**hand),
     )
     try:
-        result = run(data, args.out, config, progress=not args.quiet)
+        result = run(args.data, args.out, config, progress=not args.quiet)  # one directory or several
     except (dataset.DatasetError, ValueError) as exc:
         return _fail(str(exc))
     except KeyboardInterrupt:
@@ -205,8 +205,7 @@ def _cmd_score_data(args: argparse.Namespace) -> int:
     from train import dataset, judgement, score_data
 
     try:
-        result = score_data.score_directory(args.data[0] if len(args.data) == 1 else args.data, args.model, args.network,
-                                            args.batch_size)
+        result = score_data.score_directory(args.data, args.model, args.network, args.batch_size)
     except (dataset.DatasetError, ValueError, FileNotFoundError) as exc:
         return _fail(str(exc))
     if args.json:
