@@ -17,6 +17,7 @@ import os
 import time
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 from bench_ems import timed  # benchmarks/ is on sys.path when run as a script
 from flax import nnx
@@ -117,12 +118,12 @@ def train_throughput(config: ERNetConfig, steps: int) -> tuple[float, float]:
     opt_state = tx.init(params)
     batch = jax.device_put(dataset.make_batch(samples, np.arange(128), np.ones(128, np.float32)))
     t0 = time.perf_counter()
-    params, opt_state, stats = train_step(params, opt_state, batch, jax.random.key(0))
+    params, opt_state, stats = train_step(params, opt_state, batch, jax.random.key(0), jnp.float32(1.0))
     jax.block_until_ready(stats)
     first = time.perf_counter() - t0
     t0 = time.perf_counter()
     for i in range(steps):
-        params, opt_state, stats = train_step(params, opt_state, batch, jax.random.key(i + 1))
+        params, opt_state, stats = train_step(params, opt_state, batch, jax.random.key(i + 1), jnp.float32(1.0))
     jax.block_until_ready(stats)
     per_step = (time.perf_counter() - t0) / steps
     return first - per_step, 128 / per_step

@@ -188,6 +188,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
         decoupled_weight_decay=args.decoupled_weight_decay,
         seed=args.seed,
         held_out_fraction=args.held_out,
+        lr_decay_epochs=args.lr_decay_epochs,
         model={"paper": network.paper, "light": network.light, "tiny": network.tiny}[args.model](**hand),
     )
     try:
@@ -543,6 +544,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lr", type=float, default=1e-3)
     p.add_argument("--weight-decay", type=float, default=3e-4)
     p.add_argument("--decoupled-weight-decay", action="store_true", help="AdamW instead of Adam + L2 (the paper)")
+    p.add_argument(
+        "--lr-decay-epochs", type=int, default=0, metavar="N",
+        help="lower the learning rate along a half cosine to 0 over the last N epochs (0: constant, the paper); "
+        "a resumed run may add it",
+    )
     p.add_argument("--held-out", type=float, default=0.1, help="fraction of scenes held out (default 0.1)")
     p.add_argument(
         "--model", choices=("light", "paper", "tiny"), default="light", help="network size (light: CPU default; tiny: smoke tests)"

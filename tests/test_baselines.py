@@ -136,7 +136,7 @@ def test_pointnetgpd_overfits_a_tiny_batch():
     batch = jax.device_put(dataset.make_batch(samples, np.arange(16), weight))
     losses = []
     for step in range(80):
-        params, opt_state, stats = train_step(params, opt_state, batch, jax.random.key(step))
+        params, opt_state, stats = train_step(params, opt_state, batch, jax.random.key(step), jnp.float32(1.0))
         losses.append(float(stats["loss"] / stats["n"]))
     assert float(stats["n"]) == 8.0 and float(stats["correct"]) == 8.0
     assert np.mean(losses[-5:]) < 0.4 * losses[0], losses[::10]

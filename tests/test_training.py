@@ -5,9 +5,11 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import shutil
 from pathlib import Path
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from flax import nnx
@@ -117,7 +119,7 @@ def test_model_overfits_a_tiny_batch(samples):
     batch = jax.device_put(dataset.make_batch(samples, np.arange(16), weight))  # as the loader does
     losses, eval_losses = [], []
     for step in range(100):
-        params, opt_state, stats = train_step(params, opt_state, batch, jax.random.key(step))
+        params, opt_state, stats = train_step(params, opt_state, batch, jax.random.key(step), jnp.float32(1.0))
         losses.append(float(stats["loss"] / stats["n"]))
         eval_losses.append(float(stats["eval_loss"] / stats["n"]))
     assert float(stats["n"]) == 8.0  # padding rows do not count
@@ -191,6 +193,33 @@ def test_interrupted_run_resumes_to_identical_result(trained, samples, tmp_path)
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     with pytest.raises(ValueError, match="other settings"):
         trainer.train(samples, tmp_path, trainer.TrainConfig(**{**CONFIG.__dict__, "lr": 5e-3}), progress=False)
+
+
+def test_lr_decay_schedule_steps_and_resume(trained, samples, tmp_path):
+    config = trainer.TrainConfig(**{**CONFIG.__dict__, "epochs": 4, "lr_decay_epochs": 2})
+    scales = [config.lr_scale(epoch, step, 4) for epoch in range(4) for step in range(4)]
+    assert scales[:9] == [1.0] * 9  # constant through epoch 2 and the first step of the decay
+    assert scales[8 + 4] == pytest.approx(0.5) and scales[-1] == pytest.approx(0.5 * (1 + np.cos(np.pi * 7 / 8)))
+    assert all(a > b for a, b in zip(scales[8:], scales[9:]))  # strictly falling in the decay
+    with pytest.raises(ValueError, match="lr_decay_epochs"):
+        trainer.TrainConfig(epochs=3, lr_decay_epochs=4)
+    # The factor scales the real step: 0 leaves the parameters as they were, and never recompiles.
+    graphdef, params = nnx.split(trained.model)
+    tx, train_step, _ = trainer.make_steps(graphdef, config)
+    params, opt_state = jax.device_put((params, tx.init(params)), jax.devices()[0])
+    before = [np.asarray(x).copy() for x in jax.tree.leaves(params)]
+    batch = jax.device_put(dataset.make_batch(samples, np.arange(16), np.ones(16, np.float32)))
+    params, opt_state, _ = train_step(params, opt_state, batch, jax.random.key(0), jnp.float32(0.0))
+    for a, b in zip(before, jax.tree.leaves(params)):
+        np.testing.assert_array_equal(a, np.asarray(b))
+    params, opt_state, _ = train_step(params, opt_state, batch, jax.random.key(0), jnp.float32(0.5))
+    assert any(not np.array_equal(a, np.asarray(b)) for a, b in zip(before, jax.tree.leaves(params)))
+    # A finished constant-rate run takes a decay when extended (epochs and the schedule's tail may change).
+    shutil.copytree(trained.run_dir, tmp_path / "run")
+    resumed = trainer.train(samples, tmp_path / "run", config, progress=False)
+    assert [r["epoch"] for r in resumed.history] == [1, 2, 3, 4] and resumed.history[:2] == trained.history
+    stored = json.loads((tmp_path / "run" / "metrics.json").read_text())["train_config"]
+    assert stored["lr_decay_epochs"] == 2
 
 
 def test_cli_train_synthetic_then_resume_and_bad_data(tmp_path, capsys):

@@ -51,7 +51,7 @@ def default_config(**overrides) -> TrainConfig:
 def make_steps(graphdef: nnx.GraphDef, config: TrainConfig):
     """-> (tx, train_step, eval_step), jitted once per batch shape and cached (`trainer.steps_builder`).
 
-    train_step(params, opt_state, batch, key) -> (params, opt_state, stats)
+    train_step(params, opt_state, batch, key, lr_scale) -> (params, opt_state, stats)
     eval_step(params, batch, key) -> stats   (no noise)
     Stats are the trainer's weighted sums without the refinement entries.
     """

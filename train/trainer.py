@@ -63,6 +63,9 @@ class TrainConfig:
     threshold: evaluation score above which a grasp counts as predicted stable (paper: 0.7).
     decoupled_weight_decay: False = Adam + L2 (the paper, PyTorch Adam); True = AdamW.
     prefetch: batches prepared ahead by the loader thread.
+    lr_decay_epochs: the last N epochs lower the learning rate along a half cosine from `lr` to 0,
+        step by step (a constant-then-decay schedule); 0 (default, the paper): constant `lr`. Like
+        `epochs`, it only shapes the schedule's tail, so a resumed run may add or change it.
     """
 
     epochs: int = 100
@@ -74,6 +77,7 @@ class TrainConfig:
     held_out_fraction: float = 0.1
     threshold: float = 0.7
     prefetch: int = 4
+    lr_decay_epochs: int = 0
     model: ERNetConfig = DEFAULT_MODEL
     spec: GripperSpec = DEFAULT_SPEC
 
@@ -84,12 +88,24 @@ class TrainConfig:
             raise ValueError("lr must be > 0 and weight_decay >= 0")
         if not 0.0 < self.threshold < 1.0:
             raise ValueError("threshold must be in (0, 1)")
+        if not 0 <= self.lr_decay_epochs <= self.epochs:
+            raise ValueError(f"lr_decay_epochs must be in [0, epochs={self.epochs}], got {self.lr_decay_epochs}")
+
+    def lr_scale(self, epoch: int, step: int, steps_per_epoch: int) -> float:
+        """The learning rate's factor at `step` (0-based) of `epoch` (0-based): 1 until the last
+        `lr_decay_epochs` epochs, then a half cosine down to 0 at the end of the last epoch."""
+        if self.lr_decay_epochs == 0:
+            return 1.0
+        start = self.epochs - self.lr_decay_epochs
+        t = (epoch - start + step / max(steps_per_epoch, 1)) / self.lr_decay_epochs
+        return 1.0 if t <= 0 else 0.5 * (1.0 + math.cos(math.pi * min(t, 1.0)))
 
     def resume_key(self) -> dict[str, Any]:
-        """Settings that must not change when a run is resumed (everything but `epochs`/`prefetch`)."""
+        """Settings that must not change when a run is resumed (everything but `epochs`, `prefetch`
+        and `lr_decay_epochs`)."""
         d = dataclasses.asdict(self)
-        d.pop("epochs")
-        d.pop("prefetch")
+        for name in ("epochs", "prefetch", "lr_decay_epochs"):
+            d.pop(name)
         return json.loads(json.dumps(d))  # tuples -> lists, as stored in JSON
 
 
@@ -137,8 +153,9 @@ def _batch_stats(output, batch: dataset.Batch, weight, loss, parts, threshold: f
 
 def step_config(config: TrainConfig) -> TrainConfig:
     """The part of a TrainConfig the jitted steps depend on (the cache key of `make_steps`): not the
-    epochs, seed, split or prefetch, so a resumed run or a notebook re-run does not recompile."""
-    return dataclasses.replace(config, epochs=1, seed=0, held_out_fraction=0.0, prefetch=1)
+    epochs, seed, split, prefetch or schedule (its factor is an argument), so a resumed run or a
+    notebook re-run does not recompile."""
+    return dataclasses.replace(config, epochs=1, seed=0, held_out_fraction=0.0, prefetch=1, lr_decay_epochs=0)
 
 
 def jit_steps(tx: optax.GradientTransformation, forward: Callable, stats: Callable, noise_std: float, per_sample: Callable | None = None):
@@ -147,13 +164,17 @@ def jit_steps(tx: optax.GradientTransformation, forward: Callable, stats: Callab
     forward(params, batch, key, noise_std) -> (loss, aux); stats(batch, loss, aux) -> dict of sums;
     per_sample(aux) -> {"prob": [B], "weight": [B], optionally "refine_prob": [B, K]} (the judgement
     metrics' inputs, `train.judgement`).
-    train_step(params, opt_state, batch, key) -> (params, opt_state, stats) (params and state donated);
+    train_step(params, opt_state, batch, key, lr_scale) -> (params, opt_state, stats) (params and
+    state donated; lr_scale [] multiplies the step, the schedule's factor, traced so it never recompiles);
     eval_step(params, batch, key) -> stats, without input noise, with stats["per_sample"] when given.
     """
 
-    def train_step(params, opt_state, batch, key):
+    def train_step(params, opt_state, batch, key, lr_scale):
         (loss, aux), grads = jax.value_and_grad(forward, has_aux=True)(params, batch, key, noise_std)
         updates, opt_state = tx.update(grads, opt_state, params)
+        # Scaling the final step is scaling the learning rate (Adam's moments do not see it), and
+        # keeps the optimiser state's structure, so a run can take a schedule when resumed.
+        updates = jax.tree.map(lambda u: u * lr_scale, updates)
         return optax.apply_updates(params, updates), opt_state, stats(batch, loss, aux)
 
     def eval_step(params, batch, key):
@@ -181,7 +202,7 @@ def steps_builder(build: Callable[[nnx.GraphDef, TrainConfig], tuple]) -> Callab
 def make_steps(graphdef: nnx.GraphDef, config: TrainConfig):
     """E-RNet's -> (tx, train_step, eval_step), jitted once per batch shape (see `steps_builder`).
 
-    train_step(params, opt_state, batch, key) -> (params, opt_state, stats)
+    train_step(params, opt_state, batch, key, lr_scale) -> (params, opt_state, stats)
     eval_step(params, batch, key) -> stats  (no noise; `key` fixes the downsampling)
     """
     model_config, spec = config.model, config.spec
@@ -506,7 +527,8 @@ def run_training(
             bar = tqdm(total=n_batches, desc=f"epoch {epoch + 1}/{config.epochs}", disable=not progress, leave=False)
             try:
                 for step, batch in enumerate(loader):
-                    params, opt_state, stats = train_step(params, opt_state, batch, jax.random.fold_in(epoch_key, step))
+                    scale = jnp.float32(config.lr_scale(epoch, step, n_batches))
+                    params, opt_state, stats = train_step(params, opt_state, batch, jax.random.fold_in(epoch_key, step), scale)
                     totals = stats if totals is None else jax.tree.map(jnp.add, totals, stats)
                     bar.update(1)
                     if step % 20 == 0:
