@@ -180,18 +180,19 @@ def _cmd_train(args: argparse.Namespace) -> int:
             return _fail(f"--synthetic: {data} already holds shards")
         samples = dataset.synthetic_samples(args.synthetic, args.seed)
         print(f"wrote {args.synthetic} synthetic samples to {dataset.write_shard(os.path.join(data, 'synthetic_000'), samples)}")
-    config = trainer.TrainConfig(
-        epochs=args.epochs,
-        batch_size=args.batch_size,
-        lr=args.lr,
-        weight_decay=args.weight_decay,
-        decoupled_weight_decay=args.decoupled_weight_decay,
-        seed=args.seed,
-        held_out_fraction=args.held_out,
-        lr_decay_epochs=args.lr_decay_epochs,
-        model={"paper": network.paper, "light": network.light, "tiny": network.tiny}[args.model](**hand),
-    )
-    try:
+    try:  # a bad combination (e.g. --batch-size not divisible by --devices) is a usage error, not a traceback
+        config = trainer.TrainConfig(
+            epochs=args.epochs,
+            batch_size=args.batch_size,
+            lr=args.lr,
+            weight_decay=args.weight_decay,
+            decoupled_weight_decay=args.decoupled_weight_decay,
+            seed=args.seed,
+            held_out_fraction=args.held_out,
+            lr_decay_epochs=args.lr_decay_epochs,
+            devices=args.devices,
+            model={"paper": network.paper, "light": network.light, "tiny": network.tiny}[args.model](**hand),
+        )
         result = run(args.data, args.out, config, progress=not args.quiet)  # one directory or several
     except (dataset.DatasetError, ValueError) as exc:
         return _fail(str(exc))
@@ -550,6 +551,12 @@ def build_parser() -> argparse.ArgumentParser:
         "a resumed run may add it",
     )
     p.add_argument("--held-out", type=float, default=0.1, help="fraction of scenes held out (default 0.1)")
+    p.add_argument(
+        "--devices", type=int, default=1, metavar="N",
+        help="data-parallel training on the first N JAX devices: each batch is split over them (--batch-size must be "
+        "divisible by N), parameters and optimiser state are replicated; a run resumes on any N. On a CPU, "
+        "XLA_FLAGS=--xla_force_host_platform_device_count=N splits the host into N devices (default 1)",
+    )
     p.add_argument(
         "--model", choices=("light", "paper", "tiny"), default="light", help="network size (light: CPU default; tiny: smoke tests)"
     )

@@ -12,6 +12,12 @@ noise/shuffle keys (fold_in(seed, epoch, step)) depend only on the seed, so a ru
 point and restarted with the same command continues from its last completed epoch and ends with the
 same parameters and metrics as an uninterrupted run (tests/test_training.py checks this).
 
+Data parallelism (`devices=N`, `sgjax train --devices N`): a `jax.sharding.Mesh` over the first N
+devices with one axis "data"; every batch is split along its leading (sample) axis, the parameters
+and the optimiser state are replicated, and jit (GSPMD) partitions the same step functions, inserting
+the gradient all-reduce itself. Checkpoints hold plain arrays and are restored onto whatever device
+count the resumed run asks for (tests/test_training_sharded.py).
+
 Weight decay: the paper uses "Adam with weight decay 3e-4" (PyTorch's torch.optim.Adam(weight_decay=),
 an L2 term added to the gradient before the Adam moments); that is optax.add_decayed_weights before
 optax.adam, our default. `decoupled_weight_decay=True` gives AdamW (optax.adamw) instead.
@@ -66,6 +72,10 @@ class TrainConfig:
     lr_decay_epochs: the last N epochs lower the learning rate along a half cosine from `lr` to 0,
         step by step (a constant-then-decay schedule); 0 (default, the paper): constant `lr`. Like
         `epochs`, it only shapes the schedule's tail, so a resumed run may add or change it.
+    devices: data-parallel width: each batch is split over the first `devices` JAX devices (a mesh
+        axis "data"), parameters and optimiser state are replicated; `batch_size` must be divisible
+        by it. 1 (default): one device, as before. It changes where the step runs, not what it
+        computes (up to the order of float sums), so a resumed run may change it.
     """
 
     epochs: int = 100
@@ -78,6 +88,7 @@ class TrainConfig:
     threshold: float = 0.7
     prefetch: int = 4
     lr_decay_epochs: int = 0
+    devices: int = 1
     model: ERNetConfig = DEFAULT_MODEL
     spec: GripperSpec = DEFAULT_SPEC
 
@@ -90,6 +101,13 @@ class TrainConfig:
             raise ValueError("threshold must be in (0, 1)")
         if not 0 <= self.lr_decay_epochs <= self.epochs:
             raise ValueError(f"lr_decay_epochs must be in [0, epochs={self.epochs}], got {self.lr_decay_epochs}")
+        if self.devices < 1:
+            raise ValueError(f"devices must be >= 1, got {self.devices}")
+        if self.batch_size % self.devices:
+            raise ValueError(
+                f"batch_size {self.batch_size} is not divisible by devices={self.devices}: every device takes "
+                f"an equal slice of each batch (try batch_size {self.devices * max(1, round(self.batch_size / self.devices))})"
+            )
 
     def lr_scale(self, epoch: int, step: int, steps_per_epoch: int) -> float:
         """The learning rate's factor at `step` (0-based) of `epoch` (0-based): 1 until the last
@@ -101,10 +119,12 @@ class TrainConfig:
         return 1.0 if t <= 0 else 0.5 * (1.0 + math.cos(math.pi * min(t, 1.0)))
 
     def resume_key(self) -> dict[str, Any]:
-        """Settings that must not change when a run is resumed (everything but `epochs`, `prefetch`
-        and `lr_decay_epochs`)."""
+        """Settings that must not change when a run is resumed (everything but `epochs`, `prefetch`,
+        `lr_decay_epochs` and `devices`)."""
         d = dataclasses.asdict(self)
-        for name in ("epochs", "prefetch", "lr_decay_epochs"):
+        # `devices` is left out too: a checkpoint restores onto any device count, and runs written
+        # before the setting existed keep their fingerprint.
+        for name in ("epochs", "prefetch", "lr_decay_epochs", "devices"):
             d.pop(name)
         return json.loads(json.dumps(d))  # tuples -> lists, as stored in JSON
 
@@ -154,8 +174,9 @@ def _batch_stats(output, batch: dataset.Batch, weight, loss, parts, threshold: f
 def step_config(config: TrainConfig) -> TrainConfig:
     """The part of a TrainConfig the jitted steps depend on (the cache key of `make_steps`): not the
     epochs, seed, split, prefetch or schedule (its factor is an argument), so a resumed run or a
-    notebook re-run does not recompile."""
-    return dataclasses.replace(config, epochs=1, seed=0, held_out_fraction=0.0, prefetch=1, lr_decay_epochs=0)
+    notebook re-run does not recompile. Not `devices` either: the steps are the same functions on any
+    mesh, and jit keys its compilations by the inputs' shardings itself."""
+    return dataclasses.replace(config, epochs=1, seed=0, held_out_fraction=0.0, prefetch=1, lr_decay_epochs=0, devices=1)
 
 
 def jit_steps(tx: optax.GradientTransformation, forward: Callable, stats: Callable, noise_std: float, per_sample: Callable | None = None):
@@ -257,20 +278,29 @@ def summarise(stats: Mapping[str, Any]) -> dict[str, Any]:
 
 class Prefetcher:
     """Builds batches (array slices of preloaded columns) and puts them on the device in a thread,
-    `depth` batches ahead, so the host prepares batch i+1 while the device runs batch i."""
+    `depth` batches ahead, so the host prepares batch i+1 while the device runs batch i.
+
+    sharding: where each batch goes (every field [B, ...] split alike, e.g. `Placement.batch`'s
+    NamedSharding over "data"); None: the default device, uncommitted (the single-device path)."""
 
     _END = object()
 
-    def __init__(self, samples: Mapping[str, np.ndarray], batches: Iterable[tuple[np.ndarray, np.ndarray]], depth: int):
+    def __init__(
+        self,
+        samples: Mapping[str, np.ndarray],
+        batches: Iterable[tuple[np.ndarray, np.ndarray]],
+        depth: int,
+        sharding: jax.sharding.Sharding | None = None,
+    ):
         self._queue: queue.Queue = queue.Queue(maxsize=depth)
         self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, args=(samples, batches), daemon=True)
+        self._thread = threading.Thread(target=self._run, args=(samples, batches, sharding), daemon=True)
         self._thread.start()
 
-    def _run(self, samples, batches):
+    def _run(self, samples, batches, sharding):
         try:
             for index, weight in batches:
-                item = jax.device_put(dataset.make_batch(samples, index, weight))
+                item = jax.device_put(dataset.make_batch(samples, index, weight), sharding)
                 while not self._stop.is_set():
                     try:
                         self._queue.put(item, timeout=0.1)
@@ -405,6 +435,57 @@ def plot_reliability(judged: Mapping[str, Mapping[str, Any] | None], path: str) 
 # Training.
 
 
+DATA_AXIS = "data"  # the mesh axis batches are split along
+
+
+def data_mesh(devices: int) -> jax.sharding.Mesh:
+    """A one-axis mesh ("data",) over the first `devices` JAX devices.
+
+    Raises ValueError naming how many devices JAX sees (and how to get more on a CPU) when there are
+    fewer than `devices`."""
+    available = jax.devices()
+    if devices > len(available):
+        raise ValueError(
+            f"devices={devices} asks for more devices than JAX sees: {len(available)} {available[0].platform} "
+            f"device(s). On a CPU, split the host into N devices by starting Python with "
+            f"XLA_FLAGS=--xla_force_host_platform_device_count={devices} (it must be set before JAX is imported)"
+        )
+    # Auto axes: jit (GSPMD) propagates the shardings through the unchanged step functions; the
+    # default of jax.make_mesh, Explicit axes, would make every op's sharding part of its type.
+    return jax.make_mesh((devices,), (DATA_AXIS,), (jax.sharding.AxisType.Auto,), devices=available[:devices])
+
+
+@dataclasses.dataclass(frozen=True)
+class Placement:
+    """Where a run's arrays live: `state` for the parameters and optimiser state, `batch` for every
+    batch field [B, ...] (None: the default device, uncommitted)."""
+
+    state: jax.sharding.Sharding
+    batch: jax.sharding.Sharding | None
+
+    @classmethod
+    def for_devices(cls, devices: int) -> "Placement":
+        """devices == 1: the first device for the state, batches as `jax.device_put` places them (the
+        single-device path, unchanged); devices > 1: state replicated over a `data_mesh`, batches split
+        along their leading axis."""
+        if devices == 1:
+            return cls(jax.sharding.SingleDeviceSharding(jax.devices()[0]), None)
+        mesh = data_mesh(devices)
+        P = jax.sharding.PartitionSpec
+        return cls(jax.sharding.NamedSharding(mesh, P()), jax.sharding.NamedSharding(mesh, P(DATA_AXIS)))
+
+    def abstract(self, tree):
+        """Shape-only targets of `tree`'s arrays carrying `state`: what orbax restores into, so a
+        checkpoint written on any device count lands on this run's devices."""
+        import orbax.checkpoint as ocp
+
+        def target(x):
+            s = ocp.utils.to_shape_dtype_struct(x)  # as orbax itself sees the leaf (scalars stay scalars)
+            return jax.ShapeDtypeStruct(s.shape, s.dtype, sharding=self.state) if isinstance(s, jax.ShapeDtypeStruct) else s
+
+        return jax.tree.map(target, tree)
+
+
 @dataclasses.dataclass
 class TrainResult:
     model: nnx.Module  # an ERNet (`train`), or the network given to `run_training`
@@ -483,6 +564,7 @@ def run_training(
     from tqdm.auto import tqdm
 
     run_dir = os.fspath(run_dir)
+    placement = Placement.for_devices(config.devices)  # before reading data: a bad device count fails fast
     os.makedirs(run_dir, exist_ok=True)
     train_set, held_set, objects_set = _load_data(data, config)
     n_train, n_held = len(train_set["label"]), len(held_set["label"])
@@ -502,7 +584,9 @@ def run_training(
                 f"{run_dir} holds a run with other settings or data ({saved['fingerprint']}); "
                 "use a new --out directory or the same settings to resume"
             )
-        abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, {PARAMS_ITEM: params, OPT_STATE_ITEM: opt_state})
+        # Targets carrying this run's sharding, not the saved one: a run written with --devices 2
+        # resumes on one device and the other way round.
+        abstract = placement.abstract({PARAMS_ITEM: params, OPT_STATE_ITEM: opt_state})
         restored = manager.restore(
             start,
             args=ocp.args.Composite(**{k: ocp.args.StandardRestore(v) for k, v in abstract.items()}),
@@ -513,7 +597,7 @@ def run_training(
             print(f"resuming {run_dir} after epoch {start}")
     # Restored arrays are committed to a device; commit fresh ones too, or the jitted step would
     # compile a second time for a resumed run (committedness is part of jit's cache key).
-    params, opt_state = jax.device_put((params, opt_state), jax.devices()[0])
+    params, opt_state = jax.device_put((params, opt_state), placement.state)
 
     base_key = jax.random.key(config.seed)
     eval_key = jax.random.fold_in(base_key, 1 << 30)  # apart from the epoch keys
@@ -522,7 +606,7 @@ def run_training(
         for epoch in range(start, config.epochs):
             epoch_key = jax.random.fold_in(base_key, epoch)
             rng = np.random.default_rng([config.seed, epoch])
-            loader = Prefetcher(train_set, dataset.batch_indices(n_train, config.batch_size, rng), config.prefetch)
+            loader = Prefetcher(train_set, dataset.batch_indices(n_train, config.batch_size, rng), config.prefetch, placement.batch)
             totals = None
             bar = tqdm(total=n_batches, desc=f"epoch {epoch + 1}/{config.epochs}", disable=not progress, leave=False)
             try:
@@ -540,9 +624,11 @@ def run_training(
                 loader.close()
             record = {"epoch": epoch + 1, "train": summarise(totals), "held_out": None, "held_out_objects": None}
             if n_held:
-                record["held_out"] = evaluate_params(eval_step, params, held_set, config.batch_size, eval_key)
+                record["held_out"] = evaluate_params(eval_step, params, held_set, config.batch_size, eval_key, placement.batch)
             if len(objects_set["label"]):
-                record["held_out_objects"] = evaluate_params(eval_step, params, objects_set, config.batch_size, eval_key)
+                record["held_out_objects"] = evaluate_params(
+                    eval_step, params, objects_set, config.batch_size, eval_key, placement.batch
+                )
             history.append(record)
             record_meta = {
                 **(meta or {}),
@@ -567,18 +653,33 @@ def run_training(
                 print(_epoch_line(record))
     finally:
         manager.close()
+    if config.devices > 1:
+        # The returned model lives on one device like a devices=1 run's, so that it mixes with the
+        # single-device arrays of the planner and the benchmarks.
+        params = jax.device_put(params, jax.devices()[0])
     return TrainResult(nnx.merge(graphdef, params), history, run_dir)
 
 
-def evaluate_params(eval_step, params, samples: Mapping[str, np.ndarray], batch_size: int, key) -> dict[str, Any]:
+def evaluate_params(
+    eval_step,
+    params,
+    samples: Mapping[str, np.ndarray],
+    batch_size: int,
+    key,
+    sharding: jax.sharding.Sharding | None = None,
+) -> dict[str, Any]:
     """Metrics of `params` on preloaded columns (fixed-size padded batches, no noise): the summed
     classifier metrics (`summarise`) and, when the step gives per-sample scores, the judgement metrics
     (`train.judgement.judge`: AUC overall and per source, calibration, collisions' scores, refine AUC,
-    the top-scored grasp per scene) under "judgement"."""
+    the top-scored grasp per scene) under "judgement".
+
+    sharding: where each batch [batch_size, ...] goes, as the training batches (`Placement.batch`; with
+    replicated `params` the evaluation runs data-parallel too); None: the default device."""
     totals, parts = None, []
     n = len(samples["label"])
     for i, (index, weight) in enumerate(dataset.batch_indices(n, batch_size, None)):
-        stats = eval_step(params, jax.device_put(dataset.make_batch(samples, index, weight)), jax.random.fold_in(key, i))
+        batch = jax.device_put(dataset.make_batch(samples, index, weight), sharding)
+        stats = eval_step(params, batch, jax.random.fold_in(key, i))
         per = stats.pop("per_sample", None)
         if per is not None:
             parts.append({k: np.asarray(v)[: min(batch_size, n - i * batch_size)] for k, v in per.items()})

@@ -54,11 +54,19 @@ def restore_run(
             raise FileNotFoundError(f"no checkpoint for epoch {epoch} in {directory} (have {manager.all_steps()})")
         meta = manager.restore(step, args=ocp.args.Composite(**{META_ITEM: ocp.args.JsonRestore()}))[META_ITEM]
         graphdef, abstract = nnx.split(abstract_from_meta(meta))
-        target = jax.tree.map(ocp.utils.to_shape_dtype_struct, abstract)
+        # Onto this process's first device whatever the saved sharding was: a run trained on several
+        # devices (`sgjax train --devices N`) loads on a machine with fewer.
+        device = jax.sharding.SingleDeviceSharding(jax.devices()[0])
+        target = jax.tree.map(lambda x: _on(ocp.utils.to_shape_dtype_struct(x), device), abstract)
         restored = manager.restore(step, args=ocp.args.Composite(**{PARAMS_ITEM: ocp.args.StandardRestore(target)}))
     finally:
         manager.close()
     return nnx.merge(graphdef, restored[PARAMS_ITEM]), meta
+
+
+def _on(leaf, sharding: jax.sharding.Sharding):
+    """A restore target (jax.ShapeDtypeStruct) placed by `sharding`; other leaves as they are."""
+    return jax.ShapeDtypeStruct(leaf.shape, leaf.dtype, sharding=sharding) if isinstance(leaf, jax.ShapeDtypeStruct) else leaf
 
 
 # One entry per shipped network: a process that plans loads each default once.
