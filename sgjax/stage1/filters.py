@@ -77,6 +77,11 @@ class FilterConfig:
     # ones are removed untested ("scene_untested"). On a seen-10 scene no object had more than 230 such
     # candidates. None: test them all.
     scene_slots: int | None = 256
+    # The candidate x point tests run over this many candidates at a time (`map_chunks`): the same
+    # tests, but [chunk, N] intermediates stay in cache where [M, N] ones stream through memory once
+    # per XLA op on CPU (Stage 1 of 4 objects: 1.5x faster at 64 than all at once; same kept
+    # candidates, poses equal up to float rounding). None: all at once.
+    chunk: int | None = 64
 
     def __post_init__(self):
         if self.hidden_contacts not in HIDDEN_CONTACTS:
@@ -87,6 +92,26 @@ class FilterConfig:
             raise ValueError(f"line_samples must be >= 2, got {self.line_samples}")
         if self.scene_slots is not None and self.scene_slots < 1:
             raise ValueError(f"scene_slots must be >= 1 or None, got {self.scene_slots}")
+        if self.chunk is not None and self.chunk < 1:
+            raise ValueError(f"chunk must be >= 1 or None, got {self.chunk}")
+
+
+def map_chunks(fn, chunk: int | None, *xs):
+    """fn(*xs) computed over the leading axis [M] of every x in chunks of `chunk` rows (`jax.lax.map`):
+    the same values, row for row, up to float rounding (fn must treat its rows independently); the last chunk is padded
+    with copies of row 0, whose results are dropped. chunk None or >= M: one call."""
+    m = xs[0].shape[0]
+    if chunk is None or m <= chunk:
+        return fn(*xs)
+    pad = -m % chunk
+
+    def split(x):
+        if pad:
+            x = jnp.concatenate([x, jnp.repeat(x[:1], pad, 0)], 0)
+        return x.reshape((-1, chunk) + x.shape[1:])
+
+    out = jax.lax.map(lambda part: fn(*part), tuple(split(x) for x in xs))
+    return jax.tree.map(lambda y: y.reshape((-1,) + y.shape[2:])[:m], out)
 
 
 def nearest_neighbours(points: jax.Array, mask: jax.Array, k: int = 16) -> tuple[jax.Array, jax.Array]:
@@ -242,25 +267,36 @@ def coarse_filter(
     each obstacle point hides (`sgjax.geometry.gripper.segment_regions`).
     (iv) runs last, on at most `cfg.scene_slots` of the candidates that passed the other tests.
     """
-    hidden_cos = None
-    if cfg.hidden_contacts == "superquadric" and superquadric is not None:
-        hidden_cos = superquadric_contact_cos(superquadric, poses, widths, spec, cfg.line_samples)
-    local = to_gripper_frame(object_points, poses) if object_local is None else object_local  # [M, N, 3]
-    in_closing, in_gripper = local_regions(local, widths, spec, cfg.collision_margin)
-    in_closing &= object_mask
-    collision_object = jnp.any(in_gripper & object_mask, -1)
-    points_between = jnp.round(jnp.sum(in_closing, -1) * point_scale).astype(jnp.int32)
-    too_few = points_between < cfg.min_points
-    normal_bad = ~_normal_test(local, in_closing, normals, poses[:, :3, 0], cfg, hidden_cos)
-    below = below_plane(poses, widths, support_plane, spec, cfg)
-    passed = valid & ~collision_object & ~too_few & ~normal_bad & ~below
+    def tests(p, w, v, lc=None):
+        hidden_cos = None
+        if cfg.hidden_contacts == "superquadric" and superquadric is not None:
+            hidden_cos = superquadric_contact_cos(superquadric, p, w, spec, cfg.line_samples)
+        local = to_gripper_frame(object_points, p) if lc is None else lc  # [m, N, 3]
+        in_closing, in_gripper = local_regions(local, w, spec, cfg.collision_margin)
+        in_closing &= object_mask
+        collision_object = jnp.any(in_gripper & object_mask, -1)
+        points_between = jnp.round(jnp.sum(in_closing, -1) * point_scale).astype(jnp.int32)
+        too_few = points_between < cfg.min_points
+        normal_bad = ~_normal_test(local, in_closing, normals, p[:, :3, 0], cfg, hidden_cos)
+        below = below_plane(p, w, support_plane, spec, cfg)
+        passed = v & ~collision_object & ~too_few & ~normal_bad & ~below
+        none = jnp.zeros_like(passed)
+        return FilterResult(passed, *(f & v for f in (collision_object, too_few, normal_bad, none, below, none)), points_between)
+
+    rows = (poses, widths, valid) if object_local is None else (poses, widths, valid, object_local)
+    result = map_chunks(tests, cfg.chunk, *rows)
     if scene_points is None:
-        collision_scene = untested = jnp.zeros_like(collision_object)
-    else:
-        collision_scene, untested = _scene_test(poses, widths, passed, scene_points, scene_mask, spec, cfg, viewpoint)
-    keep = passed & ~collision_scene & ~untested
-    failed = [collision_object, too_few, normal_bad, collision_scene, below, untested]
-    return FilterResult(keep, *(f & valid for f in failed), points_between)
+        return result
+    return scene_filter(result, poses, widths, scene_points, scene_mask, spec, cfg, viewpoint)
+
+
+def scene_filter(result: FilterResult, poses, widths, scene_points, scene_mask, spec: GripperSpec = GripperSpec(),
+                 cfg: FilterConfig = FilterConfig(), viewpoint=None) -> FilterResult:
+    """Filter (iv) on a `coarse_filter` result computed without a scene: poses [M, 4, 4], widths [M] (as
+    filtered), scene_points [S, 3], scene_mask [S], viewpoint [3] or None -> the result with the scene."""
+    collision_scene, untested = _scene_test(poses, widths, result.keep, scene_points, scene_mask, spec, cfg, viewpoint)
+    return dataclasses.replace(result, keep=result.keep & ~collision_scene & ~untested, collision_scene=collision_scene,
+                               scene_untested=untested)
 
 
 def _scene_test(poses, widths, passed, scene_points, scene_mask, spec: GripperSpec, cfg: FilterConfig, viewpoint):
@@ -270,7 +306,8 @@ def _scene_test(poses, widths, passed, scene_points, scene_mask, spec: GripperSp
     m = poses.shape[0]
     slots = m if cfg.scene_slots is None else min(cfg.scene_slots, m)
     order = jnp.argsort(~passed, stable=True)[:slots]  # passed first, in match order
-    hit = _scene_collisions(poses[order], widths[order], scene_points, scene_mask, spec, cfg, viewpoint)
+    collide = lambda p, w: _scene_collisions(p, w, scene_points, scene_mask, spec, cfg, viewpoint)
+    hit = map_chunks(collide, cfg.chunk, poses[order], widths[order])
     tested = jnp.zeros(m, bool).at[order].set(passed[order])
     collision = jnp.zeros(m, bool).at[order].set(hit & passed[order])
     return collision, passed & ~tested

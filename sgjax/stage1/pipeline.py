@@ -30,7 +30,9 @@ from sgjax.stage1.filters import (
     coarse_filter,
     estimate_normals,
     lift_to_plane,
+    map_chunks,
     removal_counts,
+    scene_filter,
 )
 from sgjax.stage1.ems import EMSConfig, FitResult, _fit_one
 from sgjax.geometry.gripper import GripperSpec, recentre_and_widen, to_gripper_frame
@@ -175,24 +177,29 @@ def _pipeline(obj, obj_mask, scene, scene_mask, viewpoint, plane, scale, neighbo
     if cfg.max_lift > 0.0:
         lift = lambda p, w, pl: lift_to_plane(p, w, pl, cfg.spec, cfg.filter.support_clearance, cfg.max_lift)[0]
         poses = jax.vmap(lift)(poses, widths, plane)
-    local = jax.vmap(to_gripper_frame)(obj, poses)  # [B, M, N, 3]: shared by the adaptation and the filters
-    if cfg.adapt_width:
-        adapt = lambda lc, om, w: recentre_and_widen(lc, om, w, cfg.spec, cfg.max_recentre)
-        shift, widths = jax.vmap(adapt)(local, obj_mask, widths)  # [B, M] each
-        # Re-centring moves each grasp along its own closing axis: its local x shifts by as much.
-        poses = poses.at[..., :3, 3].add(shift[..., None] * poses[..., :3, 0])
-        local = local.at[..., 0].add(-shift[..., None])
     normals = estimate_normals(obj, obj_mask, viewpoint, neighbours=neighbours)
 
-    def one(p, w, v, o, om, nrm, s, sm, pl, sc, lc, sq, view):
-        s, sm = (s, sm) if has_scene else (None, None)
+    def one(p, w, v, o, om, nrm, s, sm, pl, sc, sq, view):
         view = view if has_view else None
-        return coarse_filter(p, w, v, o, om, nrm, s, sm, cfg.spec, cfg.filter, pl, sc, object_local=lc, superquadric=sq,
-                             viewpoint=view)
 
-    args = (poses, widths, valid, obj, obj_mask, normals, scene, scene_mask, plane, scale, local, fit.superquadric,
-            viewpoint)
-    filt = jax.vmap(one)(*args)
+        def part(pc, wc, vc):  # a chunk of candidates: the tests over candidate x object point pairs
+            local = to_gripper_frame(o, pc)  # [m, N, 3]: shared by the adaptation and the filters
+            if cfg.adapt_width:
+                shift, wc = recentre_and_widen(local, om, wc, cfg.spec, cfg.max_recentre)
+                # Re-centring moves each grasp along its own closing axis: its local x shifts by as much.
+                pc = pc.at[:, :3, 3].add(shift[:, None] * pc[:, :3, 0])
+                local = local.at[..., 0].add(-shift[:, None])
+            tested = coarse_filter(pc, wc, vc, o, om, nrm, None, None, cfg.spec, cfg.filter, pl, sc, object_local=local,
+                                   superquadric=sq)
+            return pc, wc, tested
+
+        p, w, tested = map_chunks(part, cfg.filter.chunk, p, w, v)
+        if has_scene:  # (iv) last, on the candidates that passed the rest
+            tested = scene_filter(tested, p, w, s, sm, cfg.spec, cfg.filter, view)
+        return p, w, tested
+
+    poses, widths, filt = jax.vmap(one)(poses, widths, valid, obj, obj_mask, normals, scene, scene_mask, plane, scale,
+                                        fit.superquadric, viewpoint)
     return {
         "fit": fit,
         "poses": poses,
