@@ -39,7 +39,7 @@ def row(run_dir: str, epoch: int | None) -> str:
             _f(held.get("ece")),
             _f(held.get("collision_score")),
             " / ".join(_f(v) for v in refine) if refine else "–",
-            _f(held.get("top_success")),
+            _f(held.get("top1_success", held.get("top_success"))),  # runs before 2026-12-02: top_success
             f"{_f(objects.get('auc'))} ({objects.get('samples', 0)})",
         ]
     )

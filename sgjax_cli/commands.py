@@ -214,12 +214,8 @@ def _cmd_score_data(args: argparse.Namespace) -> int:
         print(json.dumps(result, indent=1))
         return 0
     print(f"{args.network} ({args.model or 'shipped default'}) on {', '.join(args.data)}:")
-    for name, metrics in result.items():
-        if metrics is None:
-            continue
-        judged = metrics["judgement"]
-        print(f"  {name}: {judged['samples']} samples, positive rate {judged['positive_rate']:.3f}, mean score {judged['mean_score']:.3f}")
-        print(f"    {judgement.summary_line(judged)}")
+    print(f"  {judgement.summary_line(result)}\n")
+    print(score_data.report_table(result))
     return 0
 
 

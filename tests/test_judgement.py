@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from train.judgement import judge, reliability, roc_auc, top_success
+from train.judgement import judge, random_success, reliability, roc_auc, top_success
 
 
 def _auc_brute(score, label):
@@ -49,6 +49,14 @@ def test_judge_per_source_collisions_refinement_and_top_grasp():
     assert out["auc_per_source"]["a"] == 1.0 and out["auc_per_source"]["b"] == 1.0 and out["auc_per_source"]["c"] is None
     assert out["collision_score"] == pytest.approx((0.2 + 0.7) / 2)
     # Source 0 per scene: scene 5 picks 0.9 (success), scene 6 picks 0.6 (success).
-    assert out["top_success"] == 1.0
+    assert out["top1_success"] == 1.0
     assert top_success(score, label, scene) == pytest.approx(0.5)  # all sources: scene 6 picks the failed 0.7
+    # A random source-0 grasp: scene 5 has 1 of 2 succeeding, scene 6 1 of 1.
+    assert out["random_success"] == pytest.approx((0.5 + 1.0) / 2)
+    assert random_success(label, scene) == pytest.approx((2 / 3 + 1 / 3) / 2)
+    # Per source, every metric on that source's samples alone.
+    b = out["per_source"]["b"]
+    assert b["samples"] == 2 and b["auc"] == 1.0 and b["collision_score"] == pytest.approx(0.7)
+    assert b["top1_success"] == pytest.approx(0.5)  # scene 5: its 0.8 succeeds; scene 6: its 0.7 fails
+    assert out["per_source"]["c"]["auc"] is None and out["per_source"]["a"]["positive_rate"] == pytest.approx(2 / 3)
     assert out["refine_auc"] == [None, None, None]  # constant labels: undefined

@@ -217,8 +217,14 @@ def test_train_and_judge_on_labelled_scenes(whole, tmp_path, capsys):
     objects = result.history[-1]["held_out_objects"]["judgement"]
     assert 0 < objects["samples"] <= summary.held_out_object_samples
     scored = score_data.score_directory(out, tmp_path / "run")
-    assert scored["held_out_objects"]["judgement"]["samples"] == objects["samples"]
-    assert scored["all"]["judgement"]["samples"] == objects["samples"] + scored["other"]["judgement"]["samples"]
+    assert scored["held_out_objects"]["samples"] == objects["samples"]
+    assert scored["samples"] == objects["samples"] + scored["seen_objects"]["samples"]
+    assert scored["classifier"]["samples"] == scored["samples"] and 0.0 <= scored["random_success"] <= 1.0
+    assert set(scored["per_source"]) <= set(summary.per_source) and all("auc" in m for m in scored["per_source"].values())
     assert main(["score-data", "--data", str(out), "--model", str(tmp_path / "run")]) == 0
-    assert "held_out_objects" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "| held out objects |" in printed and "| source stage1 |" in printed
+    assert main(["score-data", "--data", str(out), "--model", str(tmp_path / "run"), "--json"]) == 0
+    keys = json.loads(capsys.readouterr().out)
+    assert {"auc", "per_source", "ece", "top1_success", "random_success"} <= set(keys)
     assert main(["score-data", "--data", str(tmp_path / "nowhere"), "--model", str(tmp_path / "run")]) != 0

@@ -5,11 +5,13 @@ Computed by `sgjax train` on the held-out scenes and the held-out objects after 
 
   auc                 ROC AUC of the evaluation score against the label (rank statistic, ties halved)
   auc_per_source      the same within each candidate source (`train.sources.SOURCES`)
+  per_source          every metric here within each candidate source: {name: {samples, auc, ece, ...}}
   ece                 expected calibration error over `bins` equal-width score bins
   reliability         per bin: [mean score, success rate, samples] (the reliability plot's points)
   collision_score     mean score of grasps whose trial collided (pre-grasp or approach)
   refine_auc          ROC AUC of each refinement head against its variant's label
-  top_success         per scene, the Stage-1 grasp with the highest score: the share that succeed
+  top1_success        per scene, the Stage-1 grasp with the highest score: the share that succeed
+  random_success      per scene, a Stage-1 grasp picked at random: the expected share that succeed
   mean_score / positive_rate: the scorer's mean against the actual success rate
 """
 
@@ -67,6 +69,16 @@ def top_success(score: np.ndarray, label: np.ndarray, group: np.ndarray) -> floa
     return float(np.mean(hits))
 
 
+def random_success(label: np.ndarray, group: np.ndarray) -> float | None:
+    """Per group (scene), the chance that a uniformly random sample succeeds: its success rate,
+    averaged over the groups (the baseline `top_success` should beat)."""
+    group = np.asarray(group)
+    if len(group) == 0:
+        return None
+    label = np.asarray(label).astype(bool)
+    return float(np.mean([label[group == g].mean() for g in np.unique(group)]))
+
+
 def judge(
     score: np.ndarray,
     label: np.ndarray,
@@ -82,7 +94,8 @@ def judge(
 ) -> dict:
     """Every metric of the module docstring for scores [N] against labels [N]; the optional columns
     ([N] each, refine_* [N, K]) enable their metrics. top_source: the source whose grasps compete per
-    scene in top_success (0: Stage 1 as planned; None: all)."""
+    scene in top1_success and random_success (0: Stage 1 as planned; None: all). per_source judges each
+    source's samples alone (its own grasps competing per scene)."""
     score = np.asarray(score, np.float64)
     label = np.asarray(label).astype(bool)
     ece, table = reliability(score, label, bins)
@@ -101,12 +114,23 @@ def judge(
             names[s]: roc_auc(score[source == s], label[source == s]) for s in np.unique(source) if s < len(names)
         }
         out["samples_per_source"] = {names[s]: int((source == s).sum()) for s in np.unique(source) if s < len(names)}
+
+        def part(rows, column):
+            return None if column is None else np.asarray(column)[rows]
+
+        out["per_source"] = {
+            names[s]: judge(score[rows], label[rows], outcome=part(rows, outcome), scene=part(rows, scene),
+                            refine_score=part(rows, refine_score), refine_label=part(rows, refine_label),
+                            top_source=None, bins=bins)
+            for s in np.unique(source) if s < len(names) for rows in [source == s]
+        }
     if outcome is not None:
         collided = np.isin(np.asarray(outcome), COLLISIONS)
         out["collision_score"] = float(score[collided].mean()) if collided.any() else None
     if scene is not None:
         rows = np.ones(len(score), bool) if top_source is None or source is None else source == top_source
-        out["top_success"] = top_success(score[rows], label[rows], np.asarray(scene)[rows])
+        out["top1_success"] = top_success(score[rows], label[rows], np.asarray(scene)[rows])
+        out["random_success"] = random_success(label[rows], np.asarray(scene)[rows])
     if refine_score is not None and refine_label is not None:
         refine_score, refine_label = np.asarray(refine_score), np.asarray(refine_label)
         out["refine_auc"] = [roc_auc(refine_score[:, k], refine_label[:, k]) for k in range(refine_score.shape[1])]
@@ -126,6 +150,6 @@ def summary_line(metrics: Mapping) -> str:
         parts.append(f"collisions scored {f(metrics['collision_score'])}")
     if "refine_auc" in metrics:
         parts.append("refine AUC " + "/".join(f(v) for v in metrics["refine_auc"]))
-    if "top_success" in metrics:
-        parts.append(f"top Stage-1 grasp succeeds {f(metrics['top_success'])}")
+    if "top1_success" in metrics:
+        parts.append(f"top Stage-1 grasp succeeds {f(metrics['top1_success'])} (random {f(metrics.get('random_success'))})")
     return ", ".join(parts)

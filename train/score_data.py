@@ -36,9 +36,12 @@ def load_scorer(model: str | os.PathLike | None, network: str = "ernet"):
 
 
 def score_directory(data: str | os.PathLike | Sequence[str | os.PathLike], model=None, network: str = "ernet", batch_size: int = 128) -> dict[str, Any]:
-    """Metrics of a scorer on every valid sample of a labelled directory (or several, of disjoint scenes) -> {"all", "held_out_objects",
-    "other"}: each `trainer.evaluate_params`' output (summed metrics and "judgement"), or None when
-    the group is empty."""
+    """Judge a scorer on every valid sample of a labelled directory (or several, of disjoint scenes).
+
+    -> the judgement of all samples (`train.judgement.judge`: "auc", "per_source" {name: {"auc", ...}},
+    "ece", "top1_success", "random_success", ...) plus "classifier" (the summed metrics at the
+    threshold: accuracy, precision, recall) and the judgement of two groups, "held_out_objects" and
+    "seen_objects" (None when empty)."""
     scorer, make_steps = load_scorer(model, network)
     config = trainer.TrainConfig(model=scorer.config, batch_size=batch_size)
     samples = dataset.read_shards(data, getattr(scorer.config, "crop", "enlarged"))
@@ -51,10 +54,28 @@ def score_directory(data: str | os.PathLike | Sequence[str | os.PathLike], model
     groups = {
         "all": np.ones(len(samples["label"]), bool),
         "held_out_objects": samples["held_out_object"],
-        "other": ~samples["held_out_object"],
+        "seen_objects": ~samples["held_out_object"],
     }
-    out: dict[str, Any] = {}
+    scored: dict[str, Any] = {}
     for name, rows in groups.items():
         part = {k: samples[k][rows] for k in trainer.EVAL_FIELDS}
-        out[name] = trainer.evaluate_params(eval_step, params, part, batch_size, key) if rows.any() else None
-    return out
+        scored[name] = trainer.evaluate_params(eval_step, params, part, batch_size, key) if rows.any() else None
+    overall = scored.pop("all")
+    judged = overall.pop("judgement")
+    return {**judged, "classifier": overall, **{name: (m or {}).get("judgement") for name, m in scored.items()}}
+
+
+def report_table(result: dict[str, Any]) -> str:
+    """`score_directory`'s result as a markdown table: all samples, each source, each object group."""
+    def f(v, digits=3):
+        return "–" if v is None else f"{v:.{digits}f}"
+
+    rows = [("all", result)] + [(f"source {name}", m) for name, m in (result.get("per_source") or {}).items()]
+    rows += [(name.replace("_", " "), result.get(name)) for name in ("seen_objects", "held_out_objects") if result.get(name)]
+    lines = ["| samples | n | positive rate | AUC | refine AUC | ECE | collisions' mean score | top Stage-1 grasp succeeds | random one |",
+             "|---|---:|---:|---:|---|---:|---:|---:|---:|"]
+    for name, m in rows:
+        refine = "/".join(f(v) for v in m.get("refine_auc") or []) or "–"
+        lines.append(f"| {name} | {m['samples']} | {f(m.get('positive_rate'))} | {f(m.get('auc'))} | {refine} | {f(m.get('ece'))} "
+                     f"| {f(m.get('collision_score'))} | {f(m.get('top1_success'))} | {f(m.get('random_success'))} |")
+    return "\n".join(lines)

@@ -332,7 +332,7 @@ class Prefetcher:
 
 
 METRIC_COLUMNS = ("loss", "eval_loss", "refine_loss", "accuracy", "precision", "recall")
-JUDGEMENT_COLUMNS = ("auc", "ece", "collision_score", "top_success")
+JUDGEMENT_COLUMNS = ("auc", "ece", "collision_score", "top1_success", "random_success")
 
 
 def _csv_text(history: list[dict[str, Any]]) -> str:
