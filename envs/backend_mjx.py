@@ -8,6 +8,8 @@ Same schedule, same model and the same per-phase summary (`Rollout`) as the C ba
   * Batches are padded to a power of two so that a scene compiles once per size class; the compiled
     function is reused across scenes with the same model shapes (e.g. after `remove_object`).
 On CPU, MJX is ~25x slower than the C engine and compiles for tens of seconds: use it on a GPU.
+On CPU the rollout is also compiled with a plain-JAX Cholesky factorisation (`cpu_safe_cholesky`):
+jaxlib 0.10's LAPACK kernel deadlocks XLA's CPU thread pool when MJX runs two of them at once.
 
 Two MJX implementations: "jax" (pure JAX) and "warp" (MuJoCo Warp kernels, needs `warp-lang`; built
 for NVIDIA GPUs, also runs, slowly, on CPU); "auto" takes warp on a GPU where it is installed. Warp
@@ -18,7 +20,9 @@ the batch not ok (invalid), since contacts may be lost.
 
 from __future__ import annotations
 
+import contextlib
 import functools
+import threading
 
 import jax
 import jax.numpy as jnp
@@ -64,6 +68,61 @@ def resolve_impl(impl: str) -> str:
 @functools.lru_cache(maxsize=4)
 def _device_model(assets: tuple, config: scene_lib.SceneConfig, gripper, impl: str) -> mjx.Model:
     return mjx.put_model(_sensorless_model(assets, config, gripper), impl=impl)
+
+
+def cholesky_columns(a: jax.Array) -> jax.Array:
+    """Lower Cholesky factors of symmetric positive-definite matrices a [..., n, n] -> L [..., n, n]
+    (zeros above the diagonal), in plain JAX ops: one column at a time, unrolled (n is MJX's nv, a few
+    dozen). A matrix that is not positive definite comes back all NaN, as from JAX's LAPACK path."""
+    n = a.shape[-1]
+    rows = jnp.arange(n)
+    low = jnp.zeros_like(a)
+    for j in range(n):
+        # Column j of L from the columns before it; written by adding a one-hot outer product rather
+        # than by slice updates, which XLA's CPU loops copy (1.4x slower in a 100-step scan).
+        v = a[..., :, j] - jnp.einsum("...ik,...k->...i", low, low[..., j, :])
+        col = jnp.where(rows >= j, v * jax.lax.rsqrt(v[..., j : j + 1]), 0.0)
+        low = low + col[..., :, None] * (rows == j).astype(a.dtype)
+    ok = jnp.isfinite(low).all(axis=(-2, -1), keepdims=True)
+    return jnp.where(ok, low, jnp.nan)
+
+
+_LOWERING_LOCK = threading.Lock()
+
+
+@contextlib.contextmanager
+def cpu_safe_cholesky():
+    """Within this block, `jax.lax.linalg.cholesky` (under `jax.scipy.linalg.cho_factor`, which MJX's
+    solver and mass-matrix factorisation call) lowers on CPU to `cholesky_columns` instead of jaxlib's
+    LAPACK kernel. Only what is traced and compiled inside the block is affected.
+
+    Why: jaxlib 0.10's batched LAPACK kernels split their batch over XLA's intra-op thread pool and
+    block until the pieces finish. When the pool's every thread runs such a kernel at once (MJX's step
+    holds independent factorisations; on 2 cores two suffice), no thread is left to run the pieces:
+    `sgjax label --backend mjx` hung with both pool threads waiting in `lapack_spotrf_ffi`. The plain
+    version is ordinary XLA ops that never wait on the pool; it agrees with LAPACK to ~1e-6 and costs
+    about as much at MJX's sizes (64 x 26x26: 0.7-1.2 ms against 0.7 ms; 256 x 32x32 in a scan: ~8x
+    LAPACK), a small share of an MJX step on CPU, which mesh collisions dominate.
+    JAX has no public switch for a primitive's lowering, so this swaps the registered CPU rule (a
+    private table) for the duration, under a lock; GPUs lower through their own rules, untouched.
+    """
+    try:
+        from jax._src.interpreters import mlir
+        from jax._src.lax import linalg
+    except ImportError:  # a JAX whose internals moved: keep LAPACK (newer jaxlibs no longer block)
+        yield
+        return
+    rules = mlir._platform_specific_lowerings["cpu"]
+    with _LOWERING_LOCK:
+        saved = rules.get(linalg.cholesky_p)
+        rules[linalg.cholesky_p] = mlir.LoweringRuleEntry(mlir.lower_fun(cholesky_columns, multiple_results=False), True)
+        try:
+            yield
+        finally:
+            if saved is None:
+                rules.pop(linalg.cholesky_p, None)
+            else:
+                rules[linalg.cholesky_p] = saved
 
 
 def _geom_masks(scene: scene_lib.Scene, model: mujoco.MjModel) -> tuple[np.ndarray, ...]:
@@ -202,19 +261,24 @@ def rollout_mjx(scene: scene_lib.Scene, judge: Judge, schedule: Schedule, nthrea
     # Every object (fixed shapes): parked ones sit far below FALLEN_BELOW and never count.
     speed_dofs = judge.lay.object_qvel[:, None] + np.arange(3)
     height_adr = judge.lay.object_qpos + 2
-    cmax, last, qpos, vmax, full = _run(
-        mx,
-        d0,
-        init,
-        jnp.asarray(schedule.controls()[pad], d0.qpos.dtype),
-        jnp.asarray(force_mask, d0.qpos.dtype),
-        jnp.asarray(schedule.phase_force, d0.qpos.dtype),
-        tuple(jnp.asarray(x) for x in _geom_masks(scene, model)),
-        jnp.asarray(speed_dofs),
-        jnp.asarray(height_adr),
-        phase_steps=tuple(schedule.phase_steps),
-        mocap=judge.lay.mocap,
-    )
+    # Every call, not only the first: a call that traces anew (new shapes) must trace inside too.
+    safe = cpu_safe_cholesky() if jax.default_backend() == "cpu" else contextlib.nullcontext()
+    with safe:
+        cmax, last, qpos, vmax, full = _run(
+            mx,
+            d0,
+            init,
+            jnp.asarray(schedule.controls()[pad], d0.qpos.dtype),
+            jnp.asarray(force_mask, d0.qpos.dtype),
+            jnp.asarray(schedule.phase_force, d0.qpos.dtype),
+            tuple(jnp.asarray(x) for x in _geom_masks(scene, model)),
+            jnp.asarray(speed_dofs),
+            jnp.asarray(height_adr),
+            phase_steps=tuple(schedule.phase_steps),
+            mocap=judge.lay.mocap,
+        )
+        # Wait here, inside: JAX dispatches asynchronously, and the result is what must be computed.
+        cmax, last, qpos, vmax, full = jax.block_until_ready((cmax, last, qpos, vmax, full))
     cmax, last, qpos, vmax = (np.asarray(x, np.float64)[:m] for x in (cmax, last, qpos, vmax))
     ok = ~np.asarray(full)[:m]  # NaNs are judged per phase by `classify`
     return Rollout(contact_max=cmax, end_contacts=last, end_qpos=qpos, max_speed=vmax, ok=ok)

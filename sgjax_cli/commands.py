@@ -230,12 +230,33 @@ def _per_source(text: str) -> tuple[tuple[str, int], ...]:
     return tuple(out)
 
 
+def _scene_range(scenes: str, first_scene: int | None) -> tuple[int, int]:
+    """--scenes N | A:B (+ --first-scene S) -> (first scene, end); ValueError names a bad spelling."""
+    first, colon, end = scenes.partition(":")
+    if not (end if colon else first).strip().isdigit() or (colon and not first.strip().isdigit()):
+        raise ValueError(f"--scenes must be N (scenes 0..N-1) or A:B (scenes A..B-1), got {scenes!r}")
+    if colon and first_scene is not None:
+        raise ValueError("give the first scene once: --scenes A:B or --first-scene A --scenes B")
+    if colon:
+        return int(first), int(end)
+    return (first_scene or 0), int(first)
+
+
 def _cmd_label(args: argparse.Namespace) -> int:
     from sgjax.stage1.database import DBConfig, load_database
     from sgjax.stage1.pipeline import Stage1
     from train import label
+    from train.label_ray import WorkerFailures  # imports no ray: that waits for --ray
 
     try:
+        first_scene, n_scenes = _scene_range(args.scenes, args.first_scene)
+        shard = None if args.shard is None else label.parse_shard(args.shard)
+        if args.ray is not None and shard is not None:
+            raise ValueError("--shard splits the work between separate processes; --ray does it for you: give one of them")
+        if args.ray is None and args.workers is not None:
+            raise ValueError("--workers is the number of Ray workers: it needs --ray")
+        if n_scenes <= first_scene:
+            raise ValueError(f"no scenes to label: the first scene {first_scene} is not below --scenes {n_scenes}")
         extra = {}
         if args.per_source is not None:
             extra["per_source"] = _per_source(args.per_source)
@@ -247,13 +268,26 @@ def _cmd_label(args: argparse.Namespace) -> int:
         config = label.LabelConfig(
             n_objects=args.n_objects, targets_per_scene=args.targets_per_scene, object_set=args.objects, seed=args.seed, **extra
         )
-        stage1 = Stage1(load_database(DBConfig.small()), config.stage1) if args.small_db else None
-        summary = label.label(
-            args.out, args.scenes, config, stage1=stage1, backend=args.backend, nthread=args.threads, progress=not args.quiet,
-            first_scene=args.first_scene,
-        )
-    except (ValueError, FileNotFoundError) as exc:
+        if args.ray is not None:
+            from train.label_ray import label_ray
+
+            run = label_ray(
+                args.out, n_scenes, config, db=DBConfig.small() if args.small_db else DBConfig(), address=args.ray or None,
+                workers=args.workers, threads=args.threads or 1, backend=args.backend, first_scene=first_scene,
+                progress=not args.quiet,
+            )
+            summary = run.summary
+            print(run.lines()[0])
+        else:
+            stage1 = Stage1(load_database(DBConfig.small()), config.stage1) if args.small_db else None
+            summary = label.label(
+                args.out, n_scenes, config, stage1=stage1, backend=args.backend, nthread=args.threads, progress=not args.quiet,
+                first_scene=first_scene, shard=shard,
+            )
+    except (ValueError, FileNotFoundError, ImportError) as exc:
         return _fail(str(exc))
+    except WorkerFailures as exc:  # too many Ray workers died; what they finished is kept
+        return _fail(str(exc), code=1)
     except KeyboardInterrupt:
         print(f"\ninterrupted: rerun the same command to continue; finished shards in {args.out} are kept", file=sys.stderr)
         return 130
@@ -583,11 +617,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_score_data)
 
     p = sub.add_parser("label", help="label grasps in simulated scenes for E-RNet training (resumable)")
-    p.add_argument("--scenes", type=int, required=True, help="scenes 0..N-1 (rerun with a larger N to extend)")
     p.add_argument(
-        "--first-scene", type=int, default=0, metavar="S",
-        help="label scenes S..N-1 only: continue a series in a new directory (train reads several)",
+        "--scenes", required=True, metavar="N|A:B",
+        help="scenes 0..N-1, or A..B-1 with A:B (rerun with a larger N to extend)",
     )
+    p.add_argument(
+        "--first-scene", type=int, default=None, metavar="S",
+        help="label scenes S..N-1 only: continue a series in a new directory (train reads several); --scenes S:N says the same",
+    )
+    p.add_argument(
+        "--shard", default=None, metavar="K/N",
+        help="worker K of N of a job array sharing --out (e.g. $SLURM_ARRAY_TASK_ID/$SLURM_ARRAY_TASK_COUNT): "
+        "label only blocks b of scenes_per_shard scenes with b mod N = K; together the N write one serial run's files",
+    )
+    p.add_argument(
+        "--ray", nargs="?", const="", default=None, metavar="ADDRESS",
+        help='label on Ray actors: a local cluster on this machine\'s cores, or ray.init(address=ADDRESS) ("auto", '
+        '"ray://HEAD:10001"); --out must be reachable by every worker (pip install -e ".[distributed]")',
+    )
+    p.add_argument("--workers", type=int, default=None, help="Ray workers (default: the cluster's CPUs // --threads)")
     p.add_argument("--out", required=True, help="directory of .npz shards (train/dataset.py format)")
     p.add_argument("--objects", default="seen", help="object set name or a folder of meshes (default: seen)")
     p.add_argument("--backend", default="cpu", help=BACKEND_HELP)
@@ -605,7 +653,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--small-db", action="store_true", help="the small primitive database (tests, quick runs)")
-    p.add_argument("--threads", type=int, default=0, help="simulation threads (default: all cores)")
+    p.add_argument("--threads", type=int, default=0, help="simulation threads (default: all cores; with --ray: per worker, default 1)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_label)
     p = sub.add_parser(

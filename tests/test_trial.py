@@ -238,6 +238,29 @@ def test_cpu_and_mjx_backends_agree(assets):
     np.testing.assert_allclose(mjx.object_pose[0, :, :3], cpu.object_pose[0, :, :3], atol=0.01)
 
 
+def test_mjx_on_cpu_factors_without_lapack():
+    """MJX's rollout on CPU lowers Cholesky to plain JAX ops (`cpu_safe_cholesky`): jaxlib 0.10's batched
+    LAPACK kernel deadlocked XLA's CPU pool inside MJX (`sgjax label --backend mjx` hung). Same factors,
+    NaN for a matrix that is not positive definite, and only inside the block."""
+    import jax
+
+    from envs.backend_mjx import cholesky_columns, cpu_safe_cholesky
+
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(8, 12, 12))
+    a = (x @ x.transpose(0, 2, 1) + 12 * np.eye(12)).astype(np.float32)
+    with cpu_safe_cholesky():
+        inside = jax.jit(lambda m: jax.scipy.linalg.cho_factor(m, lower=True)[0])
+        text, got = inside.lower(a).as_text(), np.tril(np.asarray(inside(a)))
+    outside = jax.jit(lambda m: jax.scipy.linalg.cho_factor(m, lower=True)[0] * 1.0).lower(a).as_text()
+    assert "potrf" not in text and "potrf" in outside
+    np.testing.assert_allclose(got, np.linalg.cholesky(a.astype(np.float64)), atol=1e-5)
+    bad = a.copy()
+    bad[0] = -np.eye(12)
+    out = np.asarray(cholesky_columns(bad))
+    assert np.isnan(out[0]).all() and np.isfinite(out[1:]).all()
+
+
 @pytest.mark.slow
 def test_cpu_and_mjx_warp_agree(pair):
     """MJX's warp implementation (on CPU here; needs warp-lang) gives the C engine's outcomes too, with

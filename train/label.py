@@ -22,6 +22,12 @@ Output directory:
     scenes-SSSSSS-EEEEEE.json       their statistics (written before the shard)
 A shard's existence marks its scenes done: an interrupted run resumes with the scenes no shard
 covers, so no sample is lost or written twice; asking for more scenes later extends the run.
+
+Beyond one process: shards follow a fixed grid of `scenes_per_shard` scenes from the first scene
+(`scene_blocks`), and a scene's samples depend only on (config, scene index), so the grid's blocks can
+be labelled anywhere, in any order. `label(..., shard=(K, N))` takes block b when b % N == K (a job
+array's worker K of N writing to one shared directory); `train.label_ray` hands blocks to Ray actors.
+Either way the directory ends up with the files of one serial run (docs/labelling-at-scale.md).
 """
 
 from __future__ import annotations
@@ -30,8 +36,9 @@ import dataclasses
 import json
 import os
 import re
+import socket
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -373,20 +380,147 @@ def _runs(indices: list[int], size: int) -> list[tuple[int, int]]:
     return runs
 
 
-def _check_config(out_dir: str, config: LabelConfig) -> None:
+def parse_shard(text: str) -> tuple[int, int]:
+    """"K/N" -> (K, N): worker K of N (0 <= K < N); ValueError names what is wrong."""
+    k, slash, n = str(text).partition("/")
+    if not slash or not k.strip().isdigit() or not n.strip().isdigit():
+        raise ValueError(f"--shard must be K/N with whole numbers, e.g. 0/4, got {text!r}")
+    return check_shard((int(k), int(n)))
+
+
+def check_shard(shard: tuple[int, int]) -> tuple[int, int]:
+    """-> (K, N) as ints, or ValueError unless N >= 1 and 0 <= K < N."""
+    k, n = (int(v) for v in shard)
+    if n < 1 or not 0 <= k < n:
+        raise ValueError(f"shard K/N needs N >= 1 and 0 <= K < N (workers are numbered from 0), got {k}/{n}")
+    return k, n
+
+
+def scene_blocks(first_scene: int, n_scenes: int, scenes_per_shard: int) -> list[tuple[int, int]]:
+    """The fixed grid of [start, end) blocks over scenes first_scene..n_scenes-1: scenes_per_shard scenes
+    each from first_scene on (the last one shorter). Block b goes to worker b mod N of a job array."""
+    return [(s, min(s + scenes_per_shard, n_scenes)) for s in range(first_scene, n_scenes, scenes_per_shard)]
+
+
+def pending_blocks(
+    out_dir: str | os.PathLike,
+    n_scenes: int,
+    config: LabelConfig,
+    first_scene: int = 0,
+    shard: tuple[int, int] | None = None,
+) -> list[tuple[int, int]]:
+    """The [start, end) shards still to write: for each grid block (`scene_blocks`; with shard=(K, N)
+    only blocks b with b % N == K), the runs of its scenes that no shard in out_dir covers yet.
+
+    In a fresh directory these are exactly the grid blocks, so a serial run, N job-array workers and a
+    Ray run all write the same files. A scene belongs to one block and a block to one worker, so no two
+    workers of one array ever write the same scene.
+    """
+    if not 0 <= first_scene < n_scenes:
+        raise ValueError(f"need 0 <= first_scene < n_scenes, got first_scene {first_scene} and n_scenes {n_scenes}")
+    k, n = check_shard(shard) if shard is not None else (0, 1)
+    out_dir = os.fspath(out_dir)
+    done = _covered(out_dir) if os.path.isdir(out_dir) else set()
+    todo: list[tuple[int, int]] = []
+    for b, (start, end) in enumerate(scene_blocks(first_scene, n_scenes, config.scenes_per_shard)):
+        if b % n == k:
+            todo += _runs([i for i in range(start, end) if i not in done], config.scenes_per_shard)
+    return todo
+
+
+def check_out_dir(out_dir: str, config: LabelConfig) -> None:
+    """Create out_dir with `label_config.json`, or check that the config saved there is `config`;
+    ValueError if it holds data made with another config."""
     path = os.path.join(out_dir, CONFIG_FILE)
     text = config.to_json()
-    if os.path.exists(path):
-        with open(path) as fh:
-            saved = fh.read()
-        if saved != text:
-            raise ValueError(
-                f"{out_dir} holds data made with a different labelling config ({path}); "
-                "use a new --out directory or the same options"
-            )
-    else:
+    if not os.path.exists(path):
         os.makedirs(out_dir, exist_ok=True)
         atomic_write_text(path, text)
+    # Read back even after writing it: workers of a job array starting together on an empty shared
+    # directory race to write it, and one with other options must not go on to mix its data in.
+    with open(path) as fh:
+        saved = fh.read()
+    if saved != text:
+        raise ValueError(
+            f"{out_dir} holds data made with a different labelling config ({path}); "
+            "use a new --out directory or the same options"
+        )
+
+
+def prepare_objects(config: LabelConfig, objects: Sequence | None = None, progress: bool = True) -> tuple[list, dict]:
+    """The object set a labelling run draws from and its identity (recorded with every shard):
+    (objects, identity). objects: prepared ObjectAssets (default: `load_object_set(config.object_set)`,
+    preparing what the cache lacks). Raises ValueError for an empty set or held-out objects it lacks."""
+    from envs.objects import load_object_set, object_set_identity
+
+    if objects is None:  # a named set that lost a member raises ObjectSetError naming it
+        objects = load_object_set(config.object_set, progress=progress, workers=os.cpu_count() or 1)
+    objects = list(objects)
+    if not objects:
+        raise ValueError(f"object set {config.object_set!r} is empty")
+    identity = object_set_identity(config.object_set, objects)
+    names = {o.name for o in objects}
+    missing = [n for n in config.held_out_objects if n not in names]
+    if missing:
+        raise ValueError(
+            f"held-out objects {missing} are not in object set {config.object_set!r}; "
+            "name members of the set (LabelConfig.held_out_objects, --held-out-objects) or none"
+        )
+    if len(names - set(config.held_out_objects)) == 0:
+        raise ValueError(f"object set {config.object_set!r} has no object left to train on besides the held-out ones")
+    return objects, identity
+
+
+def label_block(
+    out_dir: str | os.PathLike,
+    start: int,
+    end: int,
+    objects: Sequence,
+    labellers: Labellers,
+    config: LabelConfig,
+    identity: dict,
+    backend: str = "cpu",
+    nthread: int = 0,
+    on_scene: Callable[[int, int], None] | None = None,
+) -> list[dict]:
+    """Label scenes [start, end) that no shard in out_dir covers yet and write them as shards (one per run
+    of consecutive uncovered scenes; normally the whole block or nothing) -> one record per shard written
+    ({"start", "end", "samples", "trials", "seconds", ...}; [] when the block was already on disk).
+
+    Each shard is written atomically (statistics first, samples last: the .npz marks its scenes done),
+    so a worker that dies mid-block leaves nothing behind that a rerun would not redo. Samples depend
+    only on (config, scene index), never on which process labels a scene or in which order.
+    on_scene(index, samples) is called after each scene (progress bars, fault-injection hooks).
+    """
+    out_dir = os.fspath(out_dir)
+    # Checked again here, not only when the work was planned: another worker (a re-queued block whose
+    # first owner was only presumed dead) may have finished it meanwhile.
+    done = _covered(out_dir)
+    records = []
+    for run_start, run_end in _runs([i for i in range(start, end) if i not in done], config.scenes_per_shard):
+        began = time.perf_counter()
+        parts, clouds, stats = [], [], []
+        for index in range(run_start, run_end):
+            samples, cloud, scene_stats = label_scene(index, objects, labellers, config, backend, nthread)
+            if len(samples["label"]):
+                samples["cloud_row"][:] = len(clouds)
+                parts.append(samples)
+                clouds.append(cloud)
+            stats.append(scene_stats)
+            if on_scene is not None:
+                on_scene(index, len(samples["label"]))
+        samples = {k: np.concatenate([p[k] for p in parts]) for k in dataset.LABEL_FIELDS} if parts else dataset.empty_labels()
+        base = os.path.join(out_dir, f"scenes-{run_start:06d}-{run_end:06d}")
+        seconds = time.perf_counter() - began
+        worker = f"{socket.gethostname()}:{os.getpid()}"
+        record = {"scenes": stats, "seconds": seconds, "objects": identity, "worker": worker}
+        atomic_write_text(base + ".json", json.dumps(record))
+        dataset.write_label_shard(base + dataset.SHARD_SUFFIX, samples, clouds)  # written last: marks the scenes done
+        records.append({
+            "start": run_start, "end": run_end, "samples": len(samples["label"]),
+            "trials": sum(s["trials"] for s in stats), "seconds": seconds, "worker": worker,
+        })
+    return records
 
 
 def label(
@@ -400,6 +534,7 @@ def label(
     nthread: int = 0,
     progress: bool = True,
     first_scene: int = 0,
+    shard: tuple[int, int] | None = None,
 ) -> LabelSummary:
     """Label scenes first_scene..n_scenes-1 into `out_dir`, skipping scenes already there; -> the summary.
 
@@ -407,56 +542,35 @@ def label(
     (default: the full primitive database). Raises ValueError if out_dir holds data of another config.
     first_scene > 0 continues a series of scenes in a new directory (e.g. after a code change that
     changes the config): training reads several directories of one seed if their scenes are disjoint.
+    shard=(K, N): label only the grid blocks of worker K of N (`pending_blocks`), for job arrays whose
+    N workers share out_dir; together they write exactly the files of one serial run. The summary
+    covers every shard in out_dir (other workers' too).
     """
+    if shard is not None:
+        shard = check_shard(shard)
     if not 0 <= first_scene < n_scenes:
         raise ValueError(f"need 0 <= first_scene < n_scenes, got first_scene {first_scene} and n_scenes {n_scenes}")
     check_backend(backend)
     out_dir = os.fspath(out_dir)
-    _check_config(out_dir, config)
-    from envs.objects import load_object_set, object_set_identity
-
-    if objects is None:  # a named set that lost a member raises ObjectSetError naming it
-        objects = load_object_set(config.object_set, progress=progress, workers=os.cpu_count() or 1)
-    if not objects:
-        raise ValueError(f"object set {config.object_set!r} is empty")
-    identity = object_set_identity(config.object_set, objects)
-    names = {o.name for o in objects}
-    missing = [n for n in config.held_out_objects if n not in names]
-    if missing:
-        raise ValueError(
-            f"held-out objects {missing} are not in object set {config.object_set!r}; "
-            "name members of the set (LabelConfig.held_out_objects, --held-out-objects) or none"
-        )
-    if len(names - set(config.held_out_objects)) == 0:
-        raise ValueError(f"object set {config.object_set!r} has no object left to train on besides the held-out ones")
+    check_out_dir(out_dir, config)
+    objects, identity = prepare_objects(config, objects, progress)
     labellers = Labellers.make(config, stage1)
-    done = _covered(out_dir)
-    todo = _runs([i for i in range(first_scene, n_scenes) if i not in done], config.scenes_per_shard)
+    todo = pending_blocks(out_dir, n_scenes, config, first_scene, shard)
     bar = None
     if progress:
         from tqdm import tqdm
 
-        total = n_scenes - first_scene
+        k, n = shard or (0, 1)
+        blocks = scene_blocks(first_scene, n_scenes, config.scenes_per_shard)
+        total = sum(e - s for b, (s, e) in enumerate(blocks) if b % n == k)
         bar = tqdm(total=total, initial=total - sum(e - s for s, e in todo), unit="scene", desc="label")
     for start, end in todo:
-        began = time.perf_counter()
-        parts, clouds, stats = [], [], []
-        for index in range(start, end):
-            samples, cloud, scene_stats = label_scene(index, objects, labellers, config, backend, nthread)
-            if len(samples["label"]):
-                samples["cloud_row"][:] = len(clouds)
-                parts.append(samples)
-                clouds.append(cloud)
-            stats.append(scene_stats)
-            if bar is not None:
-                bar.update(1)
-        samples = {k: np.concatenate([p[k] for p in parts]) for k in dataset.LABEL_FIELDS} if parts else dataset.empty_labels()
-        base = os.path.join(out_dir, f"scenes-{start:06d}-{end:06d}")
-        record = {"scenes": stats, "seconds": time.perf_counter() - began, "objects": identity}
-        atomic_write_text(base + ".json", json.dumps(record))
-        dataset.write_label_shard(base + dataset.SHARD_SUFFIX, samples, clouds)  # written last: marks the scenes done
-        if bar is not None:
-            bar.set_postfix(samples=sum(len(p["label"]) for p in parts))
+        records = label_block(
+            out_dir, start, end, objects, labellers, config, identity, backend, nthread,
+            on_scene=None if bar is None else lambda _index, _samples: bar.update(1),
+        )
+        if bar is not None and records:
+            bar.set_postfix(samples=records[-1]["samples"])
     if bar is not None:
         bar.close()
     return summarize(out_dir)

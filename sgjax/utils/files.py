@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import os
+import secrets
+import socket
 from collections.abc import Callable
 
 
@@ -14,7 +16,9 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> None:
     """
     path = os.fspath(path)
     stem, ext = os.path.splitext(path)
-    tmp = f"{stem}.tmp-{os.getpid()}{ext}"
+    # Unique across machines, not only processes: workers on several hosts (or in containers, where pids
+    # repeat) may write the same file of a shared directory at once, and each needs its own temporary.
+    tmp = f"{stem}.tmp-{socket.gethostname()}-{os.getpid()}-{secrets.token_hex(4)}{ext}"
     try:
         write(tmp)
         os.replace(tmp, path)
