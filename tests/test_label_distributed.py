@@ -91,6 +91,9 @@ def test_two_shard_workers_write_what_one_serial_run_writes(setup, serial, tmp_p
     assert not [n for n in os.listdir(tmp_path) if ".tmp-" in n]
     with pytest.raises(ValueError, match="0 <= K < N"):
         label(tmp_path, END, CONFIG, shard=(2, 2), **common)
+    # A worker without a block of its own (4 workers, 3 blocks) finishes quietly, before anyone else.
+    idle = label(tmp_path / "idle", END, CONFIG, shard=(3, 4), **common)
+    assert idle.scenes == 0 and os.listdir(tmp_path / "idle") == ["label_config.json"]
 
 
 @pytest.mark.parametrize(

@@ -153,6 +153,12 @@ class LabelSummary:
     seconds: float  # simulated-and-computed wall time summed over shards
     trials_per_second: float
 
+    @classmethod
+    def empty(cls) -> LabelSummary:
+        """The summary of a directory without shards."""
+        outcomes = {o.name.lower(): 0 for o in Outcome}
+        return cls(0, 0, 0, 0.0, [0.0] * 3, {}, 0, 0, 0, outcomes, {}, 0.0, 0.0)
+
     def lines(self) -> list[str]:
         skipped = ", ".join(f"{k}: {v}" for k, v in sorted(self.scenes_without_samples.items())) or "none"
         return [
@@ -573,6 +579,10 @@ def label(
             bar.set_postfix(samples=records[-1]["samples"])
     if bar is not None:
         bar.close()
+    if not todo and not dataset.shard_paths(out_dir):
+        # A job-array worker with no block of its own (more workers than blocks), before any other
+        # worker's shard is on disk: nothing to summarise, and nothing wrong.
+        return LabelSummary.empty()
     return summarize(out_dir)
 
 
