@@ -14,17 +14,10 @@ import pytest
 from envs.objects import tiny_object_set
 from sgjax.stage1.pipeline import Stage1
 from train import dataset
-from train.label import Labellers, LabelConfig, check_shard, label, parse_shard, pending_blocks, scene_blocks
+from train.label import Labellers, check_shard, label, parse_shard, pending_blocks, scene_blocks
 
-CONFIG = LabelConfig(  # as tests/test_label.py: 3 objects, 2 targets, 2 grasps per source, 2 scenes per shard
-    n_objects=3,
-    targets_per_scene=2,
-    per_source=(("stage1", 2), ("stage1_paper", 2), ("gpd", 2), ("perturbed", 2)),
-    scenes_per_shard=2,
-    object_set="tiny",
-    held_out_objects=("tiny/cylinder",),
-    held_out_object_every=2,
-)
+from test_label import CONFIG  # the same tiny labelling set (tests/ is on sys.path: no __init__.py)
+
 FIRST, END = 1, 6  # scenes 1..5: blocks [1, 3), [3, 5), [5, 6), the grid anchored at the first scene
 BLOCKS = [(1, 3), (3, 5), (5, 6)]
 
