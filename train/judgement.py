@@ -110,20 +110,20 @@ def judge(
     if source is not None:
         source = np.asarray(source)
         names = list(source_names) or [str(s) for s in range(int(source.max(initial=-1)) + 1)]
-        out["auc_per_source"] = {
-            names[s]: roc_auc(score[source == s], label[source == s]) for s in np.unique(source) if s < len(names)
-        }
-        out["samples_per_source"] = {names[s]: int((source == s).sum()) for s in np.unique(source) if s < len(names)}
 
         def part(rows, column):
             return None if column is None else np.asarray(column)[rows]
 
-        out["per_source"] = {
+        per_source = {
             names[s]: judge(score[rows], label[rows], outcome=part(rows, outcome), scene=part(rows, scene),
                             refine_score=part(rows, refine_score), refine_label=part(rows, refine_label),
                             top_source=None, bins=bins)
             for s in np.unique(source) if s < len(names) for rows in [source == s]
         }
+        # The compact views the training curves and tables read, taken from the per-source judgement.
+        out["auc_per_source"] = {name: m["auc"] for name, m in per_source.items()}
+        out["samples_per_source"] = {name: m["samples"] for name, m in per_source.items()}
+        out["per_source"] = per_source
     if outcome is not None:
         collided = np.isin(np.asarray(outcome), COLLISIONS)
         out["collision_score"] = float(score[collided].mean()) if collided.any() else None
