@@ -10,6 +10,9 @@ import os
 # subprocesses started by tests (the CLI, the notebook kernel) inherit it. A user's own XLA_FLAGS wins.
 os.environ.setdefault("XLA_FLAGS", "--xla_llvm_disable_expensive_passes=true --xla_backend_optimization_level=0")
 
+import gc  # noqa: E402
+
+import jax  # noqa: E402
 import pytest  # noqa: E402
 
 from sgjax.stage1.database import DBConfig, build_database  # noqa: E402
@@ -19,3 +22,19 @@ from sgjax.stage1.database import DBConfig, build_database  # noqa: E402
 def small_db():
     """DBConfig.small(): a few dozen primitives of every family (~10 s to build, mostly EMS compile)."""
     return build_database(DBConfig.small(), workers=2, progress=False)
+
+
+@pytest.fixture(autouse=True, scope="module")
+def release_compiled_programs():
+    """After each test module, drop JAX's compiled executables (`jax.clear_caches`).
+
+    Each XLA:CPU executable keeps ~10 memory mappings while it lives, and a process may hold at most
+    `vm.max_map_count` (65530 by default) of them. One process running the whole suite compiles
+    thousands of programs: by the last test files it neared that limit, a large compilation then
+    failed, and the C++ exception jaxlib raised for the failure crashed in the unwinder (CI: a
+    segfault in `test_cpu_and_mjx_backends_agree`, 2026-12-02). Programs are only ever shared within
+    a module (module-scoped fixtures); later modules recompile what they use (or load it from the
+    persistent cache)."""
+    yield
+    jax.clear_caches()
+    gc.collect()

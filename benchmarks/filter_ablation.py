@@ -1,0 +1,121 @@
+"""Stage 1's filters on and off with today's E-RNet (issue "Stage 2, part 2": keep each filter beyond
+the paper's only where the benchmark shows it helps).
+
+    python benchmarks/filter_ablation.py [--setting seen-10] [--scenes 30] [--seed 0]
+                                         [--variants default no-shadows ...] [--out filter_ablation_out]
+                                         [--model RUN_DIR]
+
+Each variant is `supergrasp` with one `FilterConfig` change, run on the same scenes (same seed) through
+`eval.benchmark.run_benchmark` into its own folder OUT/<variant> (resumable: rerun the same command
+after an interrupt). Prints, per variant: GSR / TSR / GA, the unfinished scenes by why they ended
+(Stage 1 kept no candidate; Stage 2 scored every candidate <= the threshold; the memory of failed grasps
+left none; the attempt cap), the failed grasps by outcome (phase), Stage-1 candidates per plan and the
+planning time per grasp.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import dataclasses
+
+import numpy as np
+
+from eval import report
+from eval.benchmark import run_benchmark
+from sgjax.stage1.filters import FilterConfig
+
+# The filters beyond the paper's (i)-(iii) and the table (v), each switched back to the paper's reading.
+VARIANTS = {
+    "default": {},
+    "no-shadows": {"shadow_depth": 0.0},  # (iv) tests the observed obstacle points only
+    "no-margin": {"obstacle_margin": 0.0},  # (iv) with the hand boxes as they are
+    "no-shadows-margin": {"shadow_depth": 0.0, "obstacle_margin": 0.0},  # both of the above
+    "hidden-accept": {"hidden_contacts": "accept"},  # (iii) does not judge a finger whose contacts are hidden
+    "hidden-reject": {"hidden_contacts": "reject"},  # (iii) the paper's strict reading
+    "paper": {"shadow_depth": 0.0, "obstacle_margin": 0.0, "hidden_contacts": "accept"},  # = labelling's stage1_paper, with (iv)
+}
+
+
+def variant_config(name: str, model_config=None):
+    """The planner config of a variant: the benchmark's (`eval.supergrasp` default) with the filter change."""
+    from envs.scene import stage2_scene_cloud
+    from sgjax.planner import PlannerConfig
+
+    if name not in VARIANTS:
+        raise ValueError(f"unknown variant {name!r}; known: {', '.join(VARIANTS)}")
+    base = PlannerConfig(scene_cloud=stage2_scene_cloud())
+    filt = dataclasses.replace(FilterConfig(), **VARIANTS[name])
+    return dataclasses.replace(base, stage1=dataclasses.replace(base.stage1, filter=filt))
+
+
+def why_unfinished(log: dict) -> str | None:
+    """Why a scene ended with objects left: None when cleared, else stage1 / stage2 / memory / cap."""
+    if log["end"] == "cleared" or not log.get("remaining"):
+        return None
+    if log["end"] == "attempt_cap":
+        return "cap"
+    reason = log.get("final_reason", "")
+    if reason.startswith("no candidates") or reason.startswith("no object"):
+        return "stage1"
+    if "of the" in reason and "pose(s) to avoid" in reason:
+        return "memory"
+    return "stage2"
+
+
+def summary_row(name: str, result) -> dict:
+    s = result.summary
+    ends = collections.Counter(filter(None, (why_unfinished(log) for log in result.logs)))
+    left = collections.Counter()
+    for log in result.logs:
+        why = why_unfinished(log)
+        if why:
+            left[why] += len(log["remaining"]) if isinstance(log["remaining"], list) else int(log["remaining"])
+    attempts = [a for log in result.logs for a in log["attempts"]]
+    failed = collections.Counter(a["outcome"] for a in attempts if not a["success"])
+    plan_s = [a["timing"].get("total_s", 0.0) for a in attempts]
+    n_cand = [a["info"].get("n_candidates", 0) for a in attempts]
+    return {
+        "variant": name,
+        "GSR": report.percent(s.gsr),
+        "TSR": report.percent(s.tsr),
+        "GA": s.ga,
+        "unfinished (stage1/stage2/memory/cap)": "/".join(str(ends[k]) for k in ("stage1", "stage2", "memory", "cap")),
+        "objects left (stage1/stage2/memory/cap)": "/".join(str(left[k]) for k in ("stage1", "stage2", "memory", "cap")),
+        "failed grasps": ", ".join(f"{k} {v}" for k, v in failed.most_common()) or "-",
+        "candidates per plan": f"{np.mean(n_cand):.0f}" if n_cand else "-",
+        "plan s/grasp": f"{np.mean(plan_s):.2f}" if plan_s else "-",
+    }
+
+
+def markdown(rows: list[dict]) -> str:
+    keys = list(rows[0])
+    lines = ["| " + " | ".join(keys) + " |", "|" + "---|" * len(keys)]
+    lines += ["| " + " | ".join(str(r[k]) for k in keys) + " |" for r in rows]
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--setting", default="seen-10")
+    parser.add_argument("--scenes", type=int, default=30)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--objects", help="object set or mesh folder instead of the setting's")
+    parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
+    parser.add_argument("--out", default="filter_ablation_out")
+    parser.add_argument("--model", help="E-RNet run directory (default: the shipped checkpoint)")
+    args = parser.parse_args()
+
+    rows = []
+    for name in args.variants:
+        options = {"model": args.model, "config": variant_config(name)}
+        result = run_benchmark("supergrasp", setting=args.setting, scenes=args.scenes, seed=args.seed,
+                               out=f"{args.out}/{name}", objects=args.objects, method_options=options, pictures=0)
+        rows.append(summary_row(name, result))
+        print(markdown(rows[-1:]), flush=True)
+    print(f"\n{args.setting}, N = {args.scenes}, seed {args.seed}:\n")
+    print(markdown(rows))
+
+
+if __name__ == "__main__":
+    main()
