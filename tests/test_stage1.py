@@ -248,6 +248,7 @@ def test_shadow_depth_blocks_a_finger_in_a_neighbours_hidden_side():
             pts = pts[np.sum(mesh.face_normals[face] * (camera - pts), 1) > 0]
         return jnp.asarray(pts, jnp.float32)
 
+    # The hand boxes grown by 5 mm in (iv) and in the reference test below (the scene is laid out for it).
     target = box([-0.015] * 3, [0.015] * 3, 3000, False)  # a 3 cm cube
     mask = jnp.ones(len(target), bool)
     normals = estimate_normals(target, mask, jnp.asarray(camera))
@@ -260,7 +261,7 @@ def test_shadow_depth_blocks_a_finger_in_a_neighbours_hidden_side():
         lo, hi = np.array([0.015, -0.07 + shift, -0.03]), np.array([0.07, -0.022 + shift, 0.025])
         seen = box(lo, hi, 4000, True)  # top, -y and +x faces; the -x and +y faces face away
         result = coarse_filter(pose, width, valid, target, mask, normals, seen, jnp.ones(len(seen), bool),
-                               cfg=FilterConfig(shadow_depth=depth), viewpoint=view)
+                               cfg=FilterConfig(shadow_depth=depth, obstacle_margin=0.005), viewpoint=view)
         inside = np.random.default_rng(0).uniform(lo, hi, (20000, 3))
         closing, hand = local_regions(to_gripper_frame(jnp.asarray(inside, jnp.float32), pose[0]), 0.05, SPEC,
                                       0.005, 0.05)

@@ -54,8 +54,10 @@ class FilterConfig:
     observed_angle_deg: float = 45.0
     contact_slab: float = 0.005  # metres
     collision_margin: float = 0.0  # grow the finger and palm boxes by this (metres) in (i)
-    # ... and by this in (iv): a neighbour's hidden side lies beyond its observed points.
-    obstacle_margin: float = 0.005
+    # ... and by this in (iv). 0 since 2026-12-02: with an E-RNet that judges the candidates, the 5 mm
+    # once kept for a neighbour's hidden side (the shadows below cover that side) cost TSR on every
+    # setting and bought little GSR (docs/benchmark.md, "Stage 1's extra filters").
+    obstacle_margin: float = 0.0
     normal_neighbours: int = 16
     approach_clearance: float = 0.05  # (iv), (v) also test the gripper up to this far back along -approach
     # (iv) tests the hand swept continuously along that path; 1: the grasp only. (Any value > 1 gives the
