@@ -65,23 +65,23 @@ def why_unfinished(log: dict) -> str | None:
 
 def summary_row(name: str, result) -> dict:
     s = result.summary
-    ends = collections.Counter(filter(None, (why_unfinished(log) for log in result.logs)))
-    left = collections.Counter()
-    for log in result.logs:
-        why = why_unfinished(log)
-        if why:
-            left[why] += len(log["remaining"]) if isinstance(log["remaining"], list) else int(log["remaining"])
+    causes = [(why, int(log["remaining"])) for log in result.logs if (why := why_unfinished(log))]
+    ends, left = collections.Counter(), collections.Counter()
+    for why, remaining in causes:
+        ends[why] += 1
+        left[why] += remaining
     attempts = [a for log in result.logs for a in log["attempts"]]
     failed = collections.Counter(a["outcome"] for a in attempts if not a["success"])
     plan_s = [a["timing"].get("total_s", 0.0) for a in attempts]
     n_cand = [a["info"].get("n_candidates", 0) for a in attempts]
+    causes_of = lambda counter: "/".join(str(counter[k]) for k in ("stage1", "stage2", "memory", "cap"))
     return {
         "variant": name,
         "GSR": report.percent(s.gsr),
         "TSR": report.percent(s.tsr),
         "GA": s.ga,
-        "unfinished (stage1/stage2/memory/cap)": "/".join(str(ends[k]) for k in ("stage1", "stage2", "memory", "cap")),
-        "objects left (stage1/stage2/memory/cap)": "/".join(str(left[k]) for k in ("stage1", "stage2", "memory", "cap")),
+        "unfinished (stage1/stage2/memory/cap)": causes_of(ends),
+        "objects left (stage1/stage2/memory/cap)": causes_of(left),
         "failed grasps": ", ".join(f"{k} {v}" for k, v in failed.most_common()) or "-",
         "candidates per plan": f"{np.mean(n_cand):.0f}" if n_cand else "-",
         "plan s/grasp": f"{np.mean(plan_s):.2f}" if plan_s else "-",
@@ -89,10 +89,7 @@ def summary_row(name: str, result) -> dict:
 
 
 def markdown(rows: list[dict]) -> str:
-    keys = list(rows[0])
-    lines = ["| " + " | ".join(keys) + " |", "|" + "---|" * len(keys)]
-    lines += ["| " + " | ".join(str(r[k]) for k in keys) + " |" for r in rows]
-    return "\n".join(lines)
+    return report.markdown_table(list(rows[0]), [list(r.values()) for r in rows])
 
 
 def main() -> None:

@@ -21,7 +21,7 @@ import math
 import os
 import re
 from collections import defaultdict
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -150,6 +150,12 @@ def percent(value: float | None) -> str:
     return "–" if value is None or (isinstance(value, float) and math.isnan(value)) else f"{100 * value:.2f}%"
 
 
+def markdown_table(head: Sequence[str], rows: Iterable[Sequence]) -> str:
+    """A markdown table: the header cells head, then one line per row of cells (str() of each)."""
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    return "\n".join(lines + ["| " + " | ".join(str(c) for c in row) + " |" for row in rows])
+
+
 def table_i_markdown(rows: list[dict]) -> str:
     """Table I: methods x settings -> GSR, TSR, GA and the number of scenes N."""
     columns = []
@@ -162,14 +168,14 @@ def table_i_markdown(rows: list[dict]) -> str:
     labels = [f"{s} (seed {seed})" if s in several else s for s, seed in columns]
     by_key = {(r["method"], r["setting"], r["seed"]): r for r in rows}
     head = ["Method"] + [f"{label} {m}" for label in labels for m in ("GSR", "TSR", "GA", "N")]
-    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    body = []
     for method in _method_order(r["method"] for r in rows):
         cells = [method]
         for setting, seed in columns:
             r = by_key.get((method, setting, seed))
             cells += ["", "", "", ""] if r is None else [percent(r["GSR"]), percent(r["TSR"]), str(r["GA"]), str(r["scenes"])]
-        lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines)
+        body.append(cells)
+    return markdown_table(head, body)
 
 
 def timing_rows(logs: Iterable[Mapping]) -> list[dict]:
