@@ -464,16 +464,15 @@ def _rest_widths(sources: Sequence[MeshSource]) -> dict[str, float]:
     for source in sources:
         stat = os.stat(source.path)
         keys[source.name] = f"{source.path}:{stat.st_size}:{stat.st_mtime}"
-    missing = sorted({key: source.path for source in sources if (key := keys[source.name]) not in cached}.items())
-    if missing:
-        paths = [p for _, p in missing]
-        workers = min(os.cpu_count() or 1, len(paths))
+    todo = {key: source.path for source in sources if (key := keys[source.name]) not in cached}
+    if todo:
+        workers = min(os.cpu_count() or 1, len(todo))
         if workers > 1:  # the first run's ~1 s a mesh, over the cores (spawn: the parent may hold JAX threads)
             with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
-                widths = list(pool.map(_rest_width_of, paths))
+                widths = list(pool.map(_rest_width_of, todo.values()))
         else:
-            widths = [_rest_width_of(p) for p in paths]
-        cached.update({key: w for (key, _), w in zip(missing, widths)})
+            widths = [_rest_width_of(p) for p in todo.values()]
+        cached.update(zip(todo, widths))
         atomic_write_text(path, json.dumps(cached, indent=0))
     return {name: cached[key] for name, key in keys.items()}
 
