@@ -22,7 +22,9 @@ import dataclasses
 import numpy as np
 
 from eval import report
+from envs.scene import stage2_scene_cloud
 from eval.benchmark import run_benchmark
+from sgjax.planner import PlannerConfig
 from sgjax.stage1.filters import FilterConfig
 
 # The filters beyond the paper's (i)-(iii) and the table (v), each switched to the paper's reading (or,
@@ -39,9 +41,6 @@ VARIANTS = {
 
 def variant_config(name: str):
     """The planner config of a variant: the benchmark's (`eval.supergrasp` default) with the filter change."""
-    from envs.scene import stage2_scene_cloud
-    from sgjax.planner import PlannerConfig
-
     if name not in VARIANTS:
         raise ValueError(f"unknown variant {name!r}; known: {', '.join(VARIANTS)}")
     base = PlannerConfig(scene_cloud=stage2_scene_cloud())
