@@ -17,6 +17,9 @@ Object sets (`load_object_set(name)`):
     seen-20 benchmarks. "unseen" = ycb-unseen + procedural-unseen: never labelled; the unseen-10
     benchmark.
   * "all" = every set above but tiny (everything `sgjax objects prepare` builds by default).
+  * "tapered": 2 cylinders, 2 frusta and an open cup of the same sizes (solids of revolution), for
+    checking that single views of tapered objects get grasps as good as cylinders' (a superquadric
+    cannot taper: `benchmarks/tapered_objects.py`, tests/test_tapered.py). Never labelled.
   * any folder of .obj/.stl/.ply meshes in metres (searched recursively): source "user", no size filter.
 A mesh that cannot be prepared is reported and recorded in `cache_dir("objects", "sets", SET)/failures.json`.
 A default set (`OBJECT_SETS`) never shrinks silently: `load_object_set` raises `ObjectSetError` naming every
@@ -55,7 +58,8 @@ from sgjax.geometry.gripper import GripperSpec
 
 MAX_HULL_VERTICES = PrepConfig.max_hull_vertices  # MJX collides meshes as hulls; keep them small
 ASSET_FILE = "asset.json"
-OBJECT_SETS = ("tiny", "ycb", "ycb-seen", "ycb-unseen", "procedural", "procedural-unseen", "seen", "unseen", "all")
+OBJECT_SETS = ("tiny", "ycb", "ycb-seen", "ycb-unseen", "procedural", "procedural-unseen", "seen", "unseen", "all",
+               "tapered")
 
 # Size rule for the default sets (gripper opening from GripperSpec): the gripper must close across the
 # object with `GRASP_MARGIN` to spare where it lies. Objects rest mostly on their largest faces, so that
@@ -94,6 +98,7 @@ PROCEDURAL_UNSEEN_COUNT = 8
 PROCEDURAL_UNSEEN_SEED = 1
 REST_WIDTH_VERSION = 1  # bump when meshprep.rest_width changes
 TINY_VERSION = 2  # bump when the tiny shapes change
+TAPERED_VERSION = 1  # bump when the tapered shapes change
 
 
 @dataclasses.dataclass(frozen=True)
@@ -560,6 +565,37 @@ def tiny_object_set() -> list[ObjectAsset]:
     return report.assets
 
 
+def _revolved(profile) -> trimesh.Trimesh:
+    """A solid of revolution about z of the closed (r, z) profile [P, 2] (metres, starting and ending on
+    the axis), 48 sections, centred on its bounding box."""
+    mesh = trimesh.creation.revolve(np.asarray(profile, np.float64), sections=48)
+    mesh.apply_translation(-mesh.bounds.mean(0))
+    return mesh
+
+
+def _tapered_meshes() -> list[tuple[str, trimesh.Trimesh]]:
+    # Tapered shapes a superquadric cannot represent, beside cylinders of the same sizes: frusta of two
+    # tapers (the narrow end up; resting on it, or lying, is a placement) and an open cup (a hollow
+    # frustum, 3 mm wall, wider at the top). All 9 cm tall, 3.6-6 cm across: an 8 cm gripper closes
+    # across each standing or lying.
+    frustum = lambda bottom, top, h: _revolved([[0, 0], [bottom, 0], [top, h], [0, h]])
+    wall = 0.003
+    return [
+        ("cylinder_r22", frustum(0.022, 0.022, 0.09)),
+        ("cylinder_r28", frustum(0.028, 0.028, 0.09)),
+        ("frustum_r30_r18", frustum(0.030, 0.018, 0.09)),
+        ("frustum_r28_r22", frustum(0.028, 0.022, 0.09)),
+        ("cup_r22_r30", _revolved([[0, 0], [0.022, 0], [0.030, 0.09], [0.030 - wall, 0.09], [0.022 - wall, wall],
+                                   [0, wall]])),
+    ]
+
+
+def tapered_sources() -> list[MeshSource]:
+    folder = cache_dir("objects", "tapered", f"v{TAPERED_VERSION}")
+    names = [name for name, _ in _tapered_meshes()]
+    return _generated_sources(folder, names, _tapered_meshes, "tapered", "tapered")
+
+
 def user_sources(folder: str | os.PathLike) -> list[MeshSource]:
     """Every .obj/.stl/.ply under `folder` (recursive, sorted), named "<folder name>/<relative path>"."""
     folder = Path(folder).expanduser()
@@ -580,6 +616,8 @@ def object_sources(name: str, spec: GripperSpec | None = None) -> list[MeshSourc
     """The mesh files of object set `name` (one of OBJECT_SETS, or a folder of meshes)."""
     if name == "tiny":
         return tiny_sources()
+    if name == "tapered":
+        return tapered_sources()
     if name in ("ycb", "ycb-seen", "ycb-unseen", "seen", "unseen", "all"):
         seen, unseen = split_seen_unseen(ycb_graspable(spec))
         # Built on demand: the procedural meshes cost ~2.5 s each the first time (their rest widths).

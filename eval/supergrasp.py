@@ -52,6 +52,8 @@ class PlannerMethod:
         timing = {k: float((plan.timing or {}).get(k, 0.0)) for k in TIMING_KEYS}
         info = {"kind": plan.kind, "target": plan.target, "n_candidates": int(plan.n_candidates),
                 "compiled": bool((plan.timing or {}).get("compiled", False))}
+        if plan.refinements_rejected:
+            info["refinements_rejected"] = int(plan.refinements_rejected)
         if plan.pose is None:
             return Decision(None, 0.0, 0.0, plan.reason or "no grasp", timing, info)
         return Decision(np.asarray(plan.pose, np.float64), float(plan.width), float(plan.score), "", timing, info)

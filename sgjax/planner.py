@@ -15,7 +15,10 @@ picks the grasp (`decide`):
      `eval_threshold` (0.7);
   2. otherwise, when the highest refinement score over all candidates and variants exceeds
      `refine_threshold` (0.7), that candidate is refined by that variant (deepen 0.008 m, rotate
-     -15 / 0 / +15 deg about the approach axis, `sgjax.geometry.gripper.refined_pose`) and executed;
+     -15 / 0 / +15 deg about the approach axis, `sgjax.geometry.gripper.refined_pose`) and executed,
+     once the refined pose, backed off the table where it reaches into it, has passed Stage 1's obstacle
+     and table tests ((iv), (v): `Stage1.collisions`); one that fails is left out and the policy decides
+     again;
   3. otherwise there is no grasp, and `Plan.reason` says why.
 
 `use_refinement=False` skips step 2 (the paper's "without the refinement branch" ablation).
@@ -160,7 +163,8 @@ class Plan:
     planned object: stage1.Candidates), scores (NumPy over the M scored candidates: eval_prob [M],
     refine_prob [M, K], valid [M], target [M] label, object [M] index into `candidates`,
     object_candidate [M] row in that Candidates), initial_pose [4, 4] (the chosen Stage-1 candidate,
-    before refinement), objects (per object label: points, candidates, reason when skipped/empty).
+    before refinement), objects (per object label: points, candidates, reason when skipped/empty),
+    refinements_rejected (refined poses the policy chose that collided, each left out before deciding again).
     """
 
     pose: np.ndarray | None
@@ -177,6 +181,7 @@ class Plan:
     scores: dict
     initial_pose: np.ndarray | None = None
     objects: list = dataclasses.field(default_factory=list)
+    refinements_rejected: int = 0  # refined poses the policy chose that failed the collision tests
 
     @property
     def ok(self) -> bool:
@@ -200,6 +205,7 @@ class Plan:
             "n_scored": len(self.scores.get("eval_prob", ())),
             "timing": {k: (round(v, 6) if isinstance(v, float) else v) for k, v in self.timing.items()},
             "objects": self.objects,
+            "refinements_rejected": int(self.refinements_rejected),
         }
 
 
@@ -518,16 +524,25 @@ class Planner:
             "object_candidate": row,
         }
         timing = {"stage1_s": t1 - start, "stage2_s": t2 - t1, "total_s": t2 - start, "compiled": _compile_count() != compiled}
+        rejected = 0
+        if int(choice["kind"]) == KIND_REFINED:
+            choice, rejected = self._collision_free(choice, scores, objects, candidates, view, seed)
+            t2 = time.perf_counter()
+            timing.update(stage2_s=t2 - t1, total_s=t2 - start, compiled=_compile_count() != compiled)
         kind = int(choice["kind"])
         if kind == KIND_NONE:
-            plan = self._empty(self._why_not(scores, m), infos, start, candidates, timing)
-            plan.scores, plan.score = scores, float(choice["score"])
+            reason = self._why_not(scores, m)
+            if rejected:
+                reason = (f"best eval {float(scores['eval_prob'][scores['valid']].max()):.2f} <= {cfg.eval_threshold:g}, and "
+                          f"the {rejected} refined pose(s) scored above {cfg.refine_threshold:g} meet an obstacle or the table")
+            plan = self._empty(reason, infos, start, candidates, timing)
+            plan.scores, plan.score, plan.refinements_rejected = scores, float(choice["score"]), rejected
             return plan
         index = int(choice["index"])
         initial = candidates[obj[index]].poses[row[index]]
         refined = kind == KIND_REFINED
         return Plan(
-            pose=choice["pose"].astype(np.float64) if refined else initial.copy(),
+            pose=np.asarray(choice["pose"], np.float64) if refined else initial.copy(),
             width=float(candidates[obj[index]].widths[row[index]]),
             target=int(labels[obj[index]]),
             score=float(choice["score"]),
@@ -541,7 +556,45 @@ class Planner:
             scores=scores,
             initial_pose=initial.copy(),
             objects=infos,
+            refinements_rejected=rejected,
         )
+
+    def _collision_free(self, choice: dict, scores: dict, objects: list, candidates: list, view, seed: int):
+        """The policy's choice with every refined pose it would execute checked by Stage 1's obstacle and
+        table tests first ((iv), (v) of `Stage1.collisions`): Stage 1 checked each candidate's initial
+        pose, but a refinement deepens and turns the hand, and E-RNet's crop does not show all the
+        obstacles or the table. A refined pose that fails is left out and the policy decides again
+        (another refinement, or none). -> (choice, refined poses left out)."""
+        cfg = self.config
+        refine_prob = np.array(scores["refine_prob"], np.float32)
+        rejected = 0
+        while int(choice["kind"]) == KIND_REFINED:
+            index, variant = int(choice["index"]), int(choice["variant"])
+            o, r = int(scores["object"][index]), int(scores["object_candidate"][index])
+            _, cloud, obstacles = objects[o]
+            # Every variant of this candidate in one call: the policy may turn to another of them next.
+            variants = np.asarray(gripper.refined_poses(candidates[o].poses[r].astype(np.float32), cfg.spec))
+            widths = np.full(len(variants), candidates[o].widths[r], np.float32)
+            # Object o's Stage-1 call cropped its obstacles with seed + o (`Stage1.chunked`): the same crop.
+            # A deepened pose that reaches into the table is backed off it first, as Stage 1 backs its
+            # candidates off (`lift_to_plane`): on objects lying on the table that undoes some deepening.
+            found = self.stage1.collisions(cloud, obstacles, variants, widths, view, seed + o, cfg.support_plane,
+                                           lift=True)
+            # The obstacles and the table, not the target: the target lies in E-RNet's crop, and its refine
+            # head was trained on how these very refinements fared against it in simulation.
+            hits = found["collision_scene"] | found["below_support"]
+            if not hits[variant]:
+                lifted = not np.array_equal(found["poses"][variant], variants[variant])
+                pose = found["poses"][variant] if lifted or choice["pose"] is None else choice["pose"]
+                return {**choice, "pose": pose}, rejected
+            # A score of 0 never exceeds a threshold in [0, 1): these variants can no longer be chosen.
+            rejected += 1
+            refine_prob[index, hits] = 0.0
+            index, kind, variant, score = (np.asarray(v) for v in decide(
+                scores["eval_prob"], refine_prob, scores["valid"], cfg.eval_threshold, cfg.refine_threshold,
+                cfg.use_refinement))
+            choice = {"index": index, "kind": kind, "variant": variant, "score": score, "pose": None}
+        return choice, rejected
 
     def _score(self, scene_pad, scene_mask, poses, widths, slots, seed: int, thresholds):
         """One Stage-2 call (`_stage2`) -> (scores, choice) as NumPy. Exported once to the cache, keyed by

@@ -240,6 +240,36 @@ def test_forced_scores_give_each_decision(small_db, scene):
     np.testing.assert_array_equal(strong.pose, initial)
 
 
+def test_refined_poses_that_collide_are_left_out(small_db, scene):
+    """Before a refined pose is executed it passes Stage 1's obstacle and table tests; the policy passes over
+    the refinements that fail them, in its own order (here: refine variant 0 of the first valid candidate)."""
+    config = dataclasses.replace(CONFIG, support_plane=(0.0, 0.0, 1.0, 0.0), avoid_distance=1e-4, avoid_angle_deg=0.01)
+    planner = Planner(rigged([0.0, -5.0], [5.0, 4.0, 3.0]), small_db, config)  # variant 0 > 1 > 2, all > 0.7
+    points, labels = scene
+    first = planner.plan(points, labels, viewpoint=CAMERA)
+    cands = first.candidates[0]  # object 0's candidates, scored first
+    obstacles = points[planner.stage1.off_table(points, config.support_plane) & (labels != 0)]
+    deepened = np.asarray(refined_pose(cands.poses.astype(np.float32), 0, SPEC))
+    found = planner.stage1.collisions(points[labels == 0], obstacles, deepened, cands.widths, CAMERA, 0,
+                                      config.support_plane, lift=True)
+    hits = found["collision_scene"] | found["below_support"]  # the target is E-RNet's to judge
+    assert hits.any() and not hits.all()  # some refinements of these box grasps reach the table
+    # Leave out the candidates before the first whose refinement collides: the policy now meets it first.
+    k = int(np.argmax(hits))
+    plan = planner.plan(points, labels, viewpoint=CAMERA, avoid=cands.poses[:k])
+    s = plan.scores
+    rows = s["object_candidate"][(s["object"] == 0) & s["valid"]]
+    assert rows[0] == k
+    expected = next(i for i, r in enumerate(rows) if not hits[r])
+    assert (plan.kind, plan.refine_variant, plan.refinements_rejected) == ("refined", 0, expected)
+    np.testing.assert_array_equal(plan.initial_pose, cands.poses[rows[expected]])
+    np.testing.assert_allclose(plan.pose, found["poses"][rows[expected]], atol=1e-5)
+    executed = planner.stage1.collisions(points[labels == 0], obstacles, plan.pose[None], [plan.width], CAMERA, 0,
+                                         config.support_plane)
+    assert not (executed["collision_scene"][0] or executed["below_support"][0])
+    assert plan.to_dict()["refinements_rejected"] == expected
+
+
 def test_avoided_poses_are_never_planned_again(small_db, scene):
     """`avoid` (the benchmark's memory of failed grasps): the same grasps are left out before Stage 2."""
     strong = Planner(rigged([0.0, 5.0], [5.0, 5.0, 5.0]), small_db, CONFIG)  # first valid candidate wins

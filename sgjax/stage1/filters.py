@@ -334,6 +334,26 @@ def _scene_collisions(poses, widths, scene_points, scene_mask, spec: GripperSpec
     return jnp.any((in_closing | in_hand) & scene_mask, -1)
 
 
+def pose_collisions(poses, widths, object_points, object_mask, scene_points, scene_mask, support_plane,
+                    spec: GripperSpec = GripperSpec(), cfg: FilterConfig = FilterConfig(), viewpoint=None) -> dict:
+    """The collision tests of Stage 1 on given poses (e.g. refined ones): (i) the hand meets the target's
+    cloud, (iv) the hand meets an obstacle (or the space it hides) at the grasp, along the approach or
+    between the fingers, (v) the hand comes near the support plane; not the point-count or normal tests,
+    which judge a candidate's contacts rather than whether it can be executed.
+
+    poses [K, 4, 4], widths [K]; object_points [N, 3], object_mask [N]; scene_points [S, 3] (obstacles,
+    not the target nor the table), scene_mask [S]; support_plane [4] or None; viewpoint [3] or None
+    -> {"collision_object", "collision_scene", "below_support"}: each bool [K].
+    """
+    local = to_gripper_frame(object_points, poses)
+    _, in_hand = local_regions(local, widths, spec, cfg.collision_margin)
+    return {
+        "collision_object": jnp.any(in_hand & object_mask, -1),
+        "collision_scene": _scene_collisions(poses, widths, scene_points, scene_mask, spec, cfg, viewpoint),
+        "below_support": below_plane(poses, widths, support_plane, spec, cfg),
+    }
+
+
 def below_plane(poses, widths, plane, spec: GripperSpec, cfg: FilterConfig = FilterConfig()) -> jax.Array:
     """Filter (v): poses [M, 4, 4], widths [M], plane [4] or None -> bool [M], some gripper box corner
     lies less than support_clearance above the plane at the grasp or approach_clearance behind it."""

@@ -31,6 +31,7 @@ from sgjax.stage1.filters import (
     estimate_normals,
     lift_to_plane,
     map_chunks,
+    pose_collisions,
     removal_counts,
     scene_filter,
 )
@@ -40,6 +41,10 @@ from sgjax.utils import exported
 from sgjax.utils.cache import enable_compilation_cache
 from sgjax.stage1.matching import MatchConfig, MatchDB, match, transfer_grasps
 from sgjax.stage1.database import DBConfig, PrimitiveDB, load_database
+
+
+# `Stage1.collisions` pads its poses to a multiple of this (one compiled shape for a few poses).
+POSE_SLOTS = 8
 
 
 @dataclasses.dataclass(frozen=True)
@@ -320,6 +325,55 @@ class Stage1:
                                 np.tile(view, (size, 1)), seed + begin, support_plane)
             out.extend(result[: len(part)])
             begin += len(part)
+        return out
+
+    def collisions(self, object_points, scene_points, poses, widths, viewpoint=None, seed: int = 0,
+                   support_plane=None, lift: bool = False) -> dict[str, np.ndarray]:
+        """Stage 1's collision tests (`filters.pose_collisions`: (i) target, (iv) obstacles, (v) table) on
+        given grasps of one object, with the object cloud and obstacle crop prepared as `batch` prepares
+        them: for poses Stage 1 did not make, such as refined ones, before they are executed.
+
+        object_points [N, 3]; scene_points [S, 3] or None (obstacles: the scene without the target);
+        poses [K, 4, 4], widths [K]; viewpoint [3] or None; support_plane [4] or None; lift: first back
+        poses that reach into the support plane off it along their approach, as Stage 1 does with its
+        candidates (`filters.lift_to_plane`, at most `max_lift`), and test those
+        -> {"collision_object", "collision_scene", "below_support", "collides"}: each bool [K], and
+        "poses" [K, 4, 4] (float32): the poses tested (lifted or as given).
+        Shapes are padded (K to a multiple of POSE_SLOTS), so repeated calls do not recompile.
+        """
+        cfg = self.config
+        cloud = pointcloud.as_cloud(object_points, "object cloud")
+        poses = np.asarray(poses, np.float32)
+        widths = np.asarray(widths, np.float32)
+        if poses.ndim != 3 or poses.shape[1:] != (4, 4) or widths.shape != poses.shape[:1]:
+            raise ValueError(f"need poses [K, 4, 4] and widths [K], got {poses.shape} and {widths.shape}")
+        k = len(poses)
+        slots = max(POSE_SLOTS, -(-k // POSE_SLOTS) * POSE_SLOTS)
+        padded_poses = np.tile(np.eye(4, dtype=np.float32), (slots, 1, 1))
+        padded_widths = np.zeros(slots, np.float32)
+        padded_poses[:k], padded_widths[:k] = poses, widths
+        obj, obj_mask = pointcloud.pad_clouds([cloud], cfg.max_object_points, seed, n_points=cfg.max_object_points)
+        plane = _planes(support_plane, 1)[0]
+        scene, scene_mask = np.zeros((cfg.max_scene_points, 3), np.float32), np.zeros(cfg.max_scene_points, bool)
+        if scene_points is not None:
+            s = pointcloud.as_points(scene_points, "scene cloud")
+            if len(s):
+                scene, scene_mask = self._crop_scene(s, cloud, seed, plane)
+        has_view = viewpoint is not None
+        view = np.zeros(3, np.float32) if viewpoint is None else np.asarray(viewpoint, np.float32).reshape(3)
+
+        def check(p, w, o, om, s, sm, pl, v):
+            if lift:
+                p = lift_to_plane(p, w, pl, cfg.spec, cfg.filter.support_clearance, cfg.max_lift)[0]
+            return p, pose_collisions(p, w, o, om, s, sm, pl, cfg.spec, cfg.filter, v if has_view else None)
+
+        tested, out = exported.call("pose_collisions", check,
+                                    (padded_poses, padded_widths, obj[0], obj_mask[0], scene, scene_mask, plane, view),
+                                    (cfg.spec, cfg.filter, cfg.max_object_points, cfg.max_scene_points, has_view,
+                                     lift and cfg.max_lift))
+        out = {name: np.asarray(value)[:k] for name, value in out.items()}
+        out["collides"] = out["collision_object"] | out["collision_scene"] | out["below_support"]
+        out["poses"] = np.asarray(tested)[:k]
         return out
 
     def _unpack(self, out: dict, i: int) -> Candidates:
