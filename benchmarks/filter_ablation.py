@@ -24,6 +24,7 @@ import numpy as np
 from eval import report
 from envs.scene import stage2_scene_cloud
 from eval.benchmark import run_benchmark
+from eval.methods import make_method
 from sgjax.planner import PlannerConfig
 from sgjax.stage1.filters import FilterConfig
 
@@ -36,6 +37,11 @@ VARIANTS = {
     "hidden-accept": {"hidden_contacts": "accept"},  # (iii) does not judge a finger whose contacts are hidden
     "hidden-reject": {"hidden_contacts": "reject"},  # (iii) the paper's strict reading
     "paper": {"shadow_depth": 0.0, "obstacle_margin": 0.0, "hidden_contacts": "accept"},  # = labelling's stage1_paper, with (iv)
+    # The default filters, and when a plan finds nothing a second plan (`PlannerConfig.fallback_filter`)
+    # with the filters beyond the paper's off ("paper"), or also the paper's (ii) and (iii) loosened.
+    "fallback-paper": {"fallback": {"shadow_depth": 0.0, "hidden_contacts": "accept"}},
+    "fallback-loose": {"fallback": {"shadow_depth": 0.0, "hidden_contacts": "accept", "max_normal_angle_deg": 30.0,
+                                    "min_points": 25}},
 }
 
 
@@ -44,8 +50,34 @@ def variant_config(name: str):
     if name not in VARIANTS:
         raise ValueError(f"unknown variant {name!r}; known: {', '.join(VARIANTS)}")
     base = PlannerConfig(scene_cloud=stage2_scene_cloud())
-    filt = dataclasses.replace(FilterConfig(), **VARIANTS[name])
-    return dataclasses.replace(base, stage1=dataclasses.replace(base.stage1, filter=filt))
+    changes = dict(VARIANTS[name])
+    fallback = changes.pop("fallback", None)
+    filt = dataclasses.replace(FilterConfig(), **changes)
+    return dataclasses.replace(base, stage1=dataclasses.replace(base.stage1, filter=filt),
+                               fallback_filter=None if fallback is None else dataclasses.replace(filt, **fallback))
+
+
+def reuse_unaffected(source, out, setting: str, scenes: int, seed: int, objects, options: dict, method) -> int:
+    """Copy into `out` the scene logs of `source` (a run of the same filters without a fallback) that
+    cannot change with a fallback: the fallback only acts on a plan that finds no grasp, and such a plan
+    ends a scene ("no_grasp"), so every scene that ended otherwise runs identically. Their resume key is
+    rewritten to this variant's. -> scenes copied."""
+    from eval import declutter, report
+    from eval.benchmark import resolve_objects, run_key
+    from eval.declutter import DeclutterConfig
+
+    chosen = declutter.get_setting(setting)
+    assets, label, _ = resolve_objects(chosen, objects)
+    key = run_key("supergrasp", options, chosen.n_objects, assets, DeclutterConfig(), method.config)
+    copied = 0
+    for index in range(scenes):
+        log = report.read_scene_log(report.scene_log_path(source, "supergrasp", f"{label}-{chosen.n_objects}", seed, index))
+        target = report.scene_log_path(out, "supergrasp", f"{label}-{chosen.n_objects}", seed, index)
+        if log is None or log["end"] == "no_grasp" or target.exists():
+            continue
+        report.write_scene_log(target, {**log, "key": key})
+        copied += 1
+    return copied
 
 
 def why_unfinished(log: dict) -> str | None:
@@ -100,12 +132,20 @@ def main() -> None:
     parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
     parser.add_argument("--out", default="filter_ablation_out")
     parser.add_argument("--model", help="E-RNet run directory (default: the shipped checkpoint)")
+    parser.add_argument("--reuse", help="for the fallback-* variants: the output folder of the `default` variant "
+                        "(same setting, seed, model); its scenes that did not end for want of a grasp are taken "
+                        "from there, since a fallback cannot change them (`reuse_unaffected`)")
     args = parser.parse_args()
 
     rows = []
     for name in args.variants:
         options = {"model": args.model, "config": variant_config(name)}
-        result = run_benchmark("supergrasp", setting=args.setting, scenes=args.scenes, seed=args.seed,
+        method = make_method("supergrasp", **options)
+        if args.reuse and "fallback" in VARIANTS[name]:
+            copied = reuse_unaffected(args.reuse, f"{args.out}/{name}", args.setting, args.scenes, args.seed,
+                                      args.objects, options, method)
+            print(f"{name}: {copied} scenes taken from {args.reuse}", flush=True)
+        result = run_benchmark(method, setting=args.setting, scenes=args.scenes, seed=args.seed,
                                out=f"{args.out}/{name}", objects=args.objects, method_options=options, pictures=0)
         rows.append(summary_row(name, result))
         print(markdown(rows[-1:]), flush=True)

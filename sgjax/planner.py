@@ -56,6 +56,7 @@ from sgjax.geometry.gripper import GripperSpec
 from sgjax.stage1.database import PrimitiveDB
 from sgjax.utils import exported
 from sgjax.utils.cache import enable_compilation_cache
+from sgjax.stage1.filters import FilterConfig
 from sgjax.stage1.pipeline import Candidates, Stage1, Stage1Config
 from sgjax.stage2.scene_cloud import SceneCloudConfig
 
@@ -97,6 +98,10 @@ class PlannerConfig:
         first plan of a run compiles everything and later ones never stall.
     avoid_distance, avoid_angle_deg: a Stage-1 candidate this close to a pose passed as `avoid` (e.g. a
         grasp that already failed) is left out before Stage 2 (`gripper.near_grasps`).
+    fallback_filter: when a plan finds no grasp (Stage 1 keeps no candidate, or E-RNet passes none),
+        plan once more with Stage 1's coarse filter set to this (e.g. without the filters beyond the
+        paper's), and let E-RNet judge what it lets through; `Plan.fallback` says when that plan was
+        executed. None: no second plan.
     """
 
     stage1: Stage1Config = dataclasses.field(default_factory=Stage1Config)
@@ -111,6 +116,7 @@ class PlannerConfig:
     stage1_batch_sizes: tuple[int, ...] = (4,)
     avoid_distance: float = gripper.AVOID_DISTANCE
     avoid_angle_deg: float = gripper.AVOID_ANGLE_DEG
+    fallback_filter: FilterConfig | None = None
 
     def __post_init__(self):
         object.__setattr__(self, "stage1_batch_sizes", tuple(sorted({int(b) for b in self.stage1_batch_sizes})))
@@ -164,7 +170,8 @@ class Plan:
     refine_prob [M, K], valid [M], target [M] label, object [M] index into `candidates`,
     object_candidate [M] row in that Candidates), initial_pose [4, 4] (the chosen Stage-1 candidate,
     before refinement), objects (per object label: points, candidates, reason when skipped/empty),
-    refinements_rejected (refined poses the policy chose that collided, each left out before deciding again).
+    refinements_rejected (refined poses the policy chose that collided, each left out before deciding again),
+    fallback (whether the grasp comes from the second plan with `PlannerConfig.fallback_filter`).
     """
 
     pose: np.ndarray | None
@@ -182,6 +189,7 @@ class Plan:
     initial_pose: np.ndarray | None = None
     objects: list = dataclasses.field(default_factory=list)
     refinements_rejected: int = 0  # refined poses the policy chose that failed the collision tests
+    fallback: bool = False  # planned with `PlannerConfig.fallback_filter` (the default filters found nothing)
 
     @property
     def ok(self) -> bool:
@@ -206,6 +214,7 @@ class Plan:
             "timing": {k: (round(v, 6) if isinstance(v, float) else v) for k, v in self.timing.items()},
             "objects": self.objects,
             "refinements_rejected": int(self.refinements_rejected),
+            "fallback": bool(self.fallback),
         }
 
 
@@ -376,6 +385,7 @@ class Planner:
                 f"{config.spec.num_refinements}"
             )
         self.stage1 = Stage1(db, config.stage1)
+        self._fallback_stages: dict[Stage1Config, Stage1] = {}  # by config: `config` may be replaced later
         self.graphdef, state = nnx.split(self.model)
         # Restored checkpoints are committed to a device and fresh models are not; committedness is part
         # of jit's cache key, so commit both: every Planner with this network shares one compiled Stage 2.
@@ -456,10 +466,6 @@ class Planner:
         n = sum(len(c) for c in candidates)
         return Plan(None, None, None, 0.0, None, None, None, reason, n, timing, list(candidates), scores, None, objects)
 
-    def _stage1(self, clouds, obstacles, view, seed) -> list[Candidates]:
-        cfg = self.config
-        return self.stage1.chunked(clouds, obstacles, view, seed, cfg.support_plane, cfg.stage1_batch_sizes)
-
     def _scene(self, scene: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
         """The fixed-size Stage-2 scene cloud: points [scene_cloud.max_points, 3] float32 and mask."""
         points, mask, _ = self.config.scene_cloud.make(scene, None, seed)
@@ -474,10 +480,34 @@ class Planner:
                                                     cfg.avoid_angle_deg, xp=np)) for c in candidates]
 
     def _run(self, scene, objects, skipped, view, seed, start, avoid) -> Plan:
+        plan = self._run_with(self.stage1, scene, objects, skipped, view, seed, start, avoid)
+        fallback = None if plan.ok else self._fallback_stage()
+        if fallback is None:
+            return plan
+        second = self._run_with(fallback, scene, objects, skipped, view, seed, start, avoid)
+        if second.ok:
+            second.fallback = True
+            return second
+        plan.reason = f"{plan.reason}; with the fallback filter: {second.reason}"
+        plan.timing = second.timing  # from the same start: both plans
+        return plan
+
+    def _fallback_stage(self) -> Stage1 | None:
+        """Stage 1 with `config.fallback_filter` (built once per Stage-1 config), or None without one."""
+        cfg = self.config
+        if cfg.fallback_filter is None:
+            return None
+        stage_cfg = dataclasses.replace(cfg.stage1, filter=cfg.fallback_filter)
+        if stage_cfg not in self._fallback_stages:
+            self._fallback_stages[stage_cfg] = Stage1(self.stage1.db, stage_cfg)
+        return self._fallback_stages[stage_cfg]
+
+    def _run_with(self, stage1: Stage1, scene, objects, skipped, view, seed, start, avoid) -> Plan:
         cfg = self.config
         compiled = _compile_count()
         labels = [label for label, _, _ in objects]
-        candidates = self._stage1([o for _, o, _ in objects], [s for _, _, s in objects], view, seed)
+        candidates = stage1.chunked([o for _, o, _ in objects], [s for _, _, s in objects], view, seed,
+                                    cfg.support_plane, cfg.stage1_batch_sizes)
         t1 = time.perf_counter()
         infos = sorted(
             skipped + [{"label": lab, "points": len(o), "candidates": len(c), "reason": c.reason}
@@ -526,7 +556,7 @@ class Planner:
         timing = {"stage1_s": t1 - start, "stage2_s": t2 - t1, "total_s": t2 - start, "compiled": _compile_count() != compiled}
         rejected = 0
         if int(choice["kind"]) == KIND_REFINED:
-            choice, rejected = self._collision_free(choice, scores, objects, candidates, view, seed)
+            choice, rejected = self._collision_free(stage1, choice, scores, objects, candidates, view, seed)
             t2 = time.perf_counter()
             timing.update(stage2_s=t2 - t1, total_s=t2 - start, compiled=_compile_count() != compiled)
         kind = int(choice["kind"])
@@ -559,7 +589,8 @@ class Planner:
             refinements_rejected=rejected,
         )
 
-    def _collision_free(self, choice: dict, scores: dict, objects: list, candidates: list, view, seed: int):
+    def _collision_free(self, stage1: Stage1, choice: dict, scores: dict, objects: list, candidates: list, view,
+                        seed: int):
         """The policy's choice with every refined pose it would execute checked by Stage 1's obstacle and
         table tests first ((iv), (v) of `Stage1.collisions`): Stage 1 checked each candidate's initial
         pose, but a refinement deepens and turns the hand, and E-RNet's crop does not show all the
@@ -578,8 +609,7 @@ class Planner:
             # Object o's Stage-1 call cropped its obstacles with seed + o (`Stage1.chunked`): the same crop.
             # A deepened pose that reaches into the table is backed off it first, as Stage 1 backs its
             # candidates off (`lift_to_plane`): on objects lying on the table that undoes some deepening.
-            found = self.stage1.collisions(cloud, obstacles, variants, widths, view, seed + o, cfg.support_plane,
-                                           lift=True)
+            found = stage1.collisions(cloud, obstacles, variants, widths, view, seed + o, cfg.support_plane, lift=True)
             # The obstacles and the table, not the target: the target lies in E-RNet's crop, and its refine
             # head was trained on how these very refinements fared against it in simulation.
             hits = found["collision_scene"] | found["below_support"]

@@ -324,6 +324,32 @@ def test_no_candidates_gives_the_stage1_reason(planner, scene):
     assert plan.kind is None and "below the support plane" in plan.reason and not plan.timing["compiled"]
 
 
+def test_fallback_filter_plans_again_only_when_nothing_was_found(small_db, scene):
+    """`PlannerConfig.fallback_filter`: a plan that finds no grasp is made again with that filter, and
+    only then; the grasp it executes is the one a planner with that filter would choose."""
+    from sgjax.stage1.filters import FilterConfig
+
+    strong = rigged([0.0, 5.0], [5.0, 5.0, 5.0])
+    starved = dataclasses.replace(CONFIG.stage1, filter=FilterConfig(min_points=5000))  # (ii) removes all
+    plain = Planner(strong, small_db, CONFIG).plan(*scene, viewpoint=CAMERA)
+    assert plain.ok and not plain.fallback
+    rescued = Planner(strong, small_db, dataclasses.replace(CONFIG, stage1=starved, fallback_filter=FilterConfig()))
+    plan = rescued.plan(*scene, viewpoint=CAMERA)
+    assert plan.ok and plan.fallback and plan.to_dict()["fallback"]
+    np.testing.assert_array_equal(plan.pose, plain.pose)
+    assert plan.n_candidates == plain.n_candidates > 0
+    # No fallback needed: the first plan stands (the starving filter as fallback is never run).
+    unused = Planner(strong, small_db, dataclasses.replace(CONFIG, fallback_filter=FilterConfig(min_points=5000)))
+    first = unused.plan(*scene, viewpoint=CAMERA)
+    assert first.ok and not first.fallback and not unused._fallback_stages
+    # Both plans find nothing: the reason gives both.
+    hopeless = Planner(strong, small_db, dataclasses.replace(CONFIG, stage1=starved, fallback_filter=starved.filter))
+    none = hopeless.plan(*scene, viewpoint=CAMERA)
+    assert none.kind is None and not none.fallback
+    assert none.reason.startswith("no candidates: ") and "; with the fallback filter: no candidates: " in none.reason
+    assert "fewer than 5000 points between the fingers" in none.reason
+
+
 @pytest.mark.parametrize(
     "change, message",
     [
