@@ -54,6 +54,8 @@ class PlannerMethod:
                 "compiled": bool((plan.timing or {}).get("compiled", False))}
         if plan.refinements_rejected:
             info["refinements_rejected"] = int(plan.refinements_rejected)
+        if plan.fallback:
+            info["fallback"] = True
         if plan.pose is None:
             return Decision(None, 0.0, 0.0, plan.reason or "no grasp", timing, info)
         return Decision(np.asarray(plan.pose, np.float64), float(plan.width), float(plan.score), "", timing, info)
