@@ -1,17 +1,18 @@
-"""Stage 1's filters on and off with today's E-RNet (issue "Stage 2, part 2": keep each filter beyond
-the paper's only where the benchmark shows it helps).
+"""Stage 1's filters on and off, and the second plan, with today's E-RNet (issue "Stage 2, part 2": keep
+each filter beyond the paper's only where the benchmark shows it helps).
 
     python benchmarks/filter_ablation.py [--setting seen-10] [--scenes 30] [--seed 0]
-                                         [--variants default no-shadows ...] [--out filter_ablation_out]
-                                         [--model RUN_DIR]
+                                         [--variants default no-fallback ...] [--out filter_ablation_out]
+                                         [--model RUN_DIR] [--method supergrasp|supergrasp-norefine]
+                                         [--reuse RUN_WITHOUT_FALLBACK]
 
-Each variant is `supergrasp` with one `FilterConfig` change, run on the same scenes (same seed) through
+Each variant is `supergrasp` (or --method) with one change to today's planner (`VARIANTS`: a
+`FilterConfig` change, or the second plan's filter), run on the same scenes (same seed) through
 `eval.benchmark.run_benchmark` into its own folder OUT/<variant> (resumable: rerun the same command
 after an interrupt). Prints, per variant: GSR / TSR / GA, the unfinished scenes by why they ended
 (Stage 1 kept no candidate; Stage 2 scored every candidate <= the threshold; the memory of failed grasps
 left none; the attempt cap), the failed grasps by outcome (phase), Stage-1 candidates per plan and the
-planning time per grasp.
-"""
+planning time per grasp."""
 
 from __future__ import annotations
 
@@ -29,32 +30,40 @@ from sgjax.planner import PlannerConfig
 from sgjax.stage1.filters import FilterConfig
 
 # The filters beyond the paper's (i)-(iii) and the table (v), each switched to the paper's reading (or,
-# for the obstacle margin, back to the default it had before 2026-12-02).
+# for the obstacle margin, back to the default it had before 2026-12-02); and the second plan when the
+# first finds nothing (`PlannerConfig.fallback_filter`): "fallback" gives its filter as changes to
+# FilterConfig(), None for no second plan; without the key a variant keeps the default `FALLBACK_FILTER`.
 VARIANTS = {
     "default": {},
+    "no-fallback": {"fallback": None},  # the planner before 2026-12-02 evening: one plan
     "margin-5mm": {"obstacle_margin": 0.005},  # (iv) with the hand boxes grown by 5 mm (the old default)
     "no-shadows": {"shadow_depth": 0.0},  # (iv) tests the observed obstacle points only
     "hidden-accept": {"hidden_contacts": "accept"},  # (iii) does not judge a finger whose contacts are hidden
     "hidden-reject": {"hidden_contacts": "reject"},  # (iii) the paper's strict reading
     "paper": {"shadow_depth": 0.0, "obstacle_margin": 0.0, "hidden_contacts": "accept"},  # = labelling's stage1_paper, with (iv)
-    # The default filters, and when a plan finds nothing a second plan (`PlannerConfig.fallback_filter`)
-    # with the filters beyond the paper's off ("paper"), or also the paper's (ii) and (iii) loosened.
+    # A second plan with only the filters beyond the paper's off (the default also loosens (ii), (iii)).
     "fallback-paper": {"fallback": {"shadow_depth": 0.0, "hidden_contacts": "accept"}},
-    "fallback-loose": {"fallback": {"shadow_depth": 0.0, "hidden_contacts": "accept", "max_normal_angle_deg": 30.0,
-                                    "min_points": 25}},
 }
 
 
 def variant_config(name: str):
-    """The planner config of a variant: the benchmark's (`eval.supergrasp` default) with the filter change."""
+    """The planner config of a variant: the benchmark's (`eval.supergrasp` default) with its changes."""
     if name not in VARIANTS:
         raise ValueError(f"unknown variant {name!r}; known: {', '.join(VARIANTS)}")
     base = PlannerConfig(scene_cloud=stage2_scene_cloud())
     changes = dict(VARIANTS[name])
-    fallback = changes.pop("fallback", None)
+    fallback = changes.pop("fallback", "default")
+    if fallback == "default":
+        fallback_filter = base.fallback_filter
+    else:
+        fallback_filter = None if fallback is None else dataclasses.replace(FilterConfig(), **fallback)
     filt = dataclasses.replace(FilterConfig(), **changes)
-    return dataclasses.replace(base, stage1=dataclasses.replace(base.stage1, filter=filt),
-                               fallback_filter=None if fallback is None else dataclasses.replace(filt, **fallback))
+    return dataclasses.replace(base, stage1=dataclasses.replace(base.stage1, filter=filt), fallback_filter=fallback_filter)
+
+
+def differs_only_by_fallback(name: str) -> bool:
+    """Whether variant `name` is the default filters with a second plan (so `--reuse` applies)."""
+    return set(VARIANTS[name]) <= {"fallback"} and VARIANTS[name].get("fallback", "default") is not None
 
 
 def reuse_unaffected(source, out, setting: str, scenes: int, seed: int, objects, options: dict, method) -> int:
@@ -68,11 +77,11 @@ def reuse_unaffected(source, out, setting: str, scenes: int, seed: int, objects,
 
     chosen = declutter.get_setting(setting)
     assets, label, _ = resolve_objects(chosen, objects)
-    key = run_key("supergrasp", options, chosen.n_objects, assets, DeclutterConfig(), method.config)
+    key = run_key(method.name, options, chosen.n_objects, assets, DeclutterConfig(), method.config)
     copied = 0
     for index in range(scenes):
-        log = report.read_scene_log(report.scene_log_path(source, "supergrasp", f"{label}-{chosen.n_objects}", seed, index))
-        target = report.scene_log_path(out, "supergrasp", f"{label}-{chosen.n_objects}", seed, index)
+        log = report.read_scene_log(report.scene_log_path(source, method.name, f"{label}-{chosen.n_objects}", seed, index))
+        target = report.scene_log_path(out, method.name, f"{label}-{chosen.n_objects}", seed, index)
         if log is None or log["end"] == "no_grasp" or target.exists():
             continue
         report.write_scene_log(target, {**log, "key": key})
@@ -132,16 +141,18 @@ def main() -> None:
     parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
     parser.add_argument("--out", default="filter_ablation_out")
     parser.add_argument("--model", help="E-RNet run directory (default: the shipped checkpoint)")
-    parser.add_argument("--reuse", help="for the fallback-* variants: the output folder of the `default` variant "
-                        "(same setting, seed, model); its scenes that did not end for want of a grasp are taken "
-                        "from there, since a fallback cannot change them (`reuse_unaffected`)")
+    parser.add_argument("--method", default="supergrasp", choices=["supergrasp", "supergrasp-norefine"])
+    parser.add_argument("--reuse", help="for the variants that add a second plan to the default filters (default, "
+                        "fallback-*): the output folder of a run without it (the no-fallback variant, or `sgjax "
+                        "declutter` of a planner without one; same setting, seed, model); its scenes that did not "
+                        "end for want of a grasp are taken from there, since a second plan cannot change them")
     args = parser.parse_args()
 
     rows = []
     for name in args.variants:
         options = {"model": args.model, "config": variant_config(name)}
-        method = make_method("supergrasp", **options)
-        if args.reuse and "fallback" in VARIANTS[name]:
+        method = make_method(args.method, **options)
+        if args.reuse and differs_only_by_fallback(name):
             copied = reuse_unaffected(args.reuse, f"{args.out}/{name}", args.setting, args.scenes, args.seed,
                                       args.objects, options, method)
             print(f"{name}: {copied} scenes taken from {args.reuse}", flush=True)

@@ -81,13 +81,17 @@ def summarize(logs: Iterable[Mapping]) -> Summary:
 
 
 def timing_summary(logs: Iterable[Mapping]) -> dict[str, tuple[float, float, int]]:
-    """Mean, standard deviation and count of each timing key over the executed grasps' plan calls.
+    """Mean, standard deviation and count of each timing key over the executed grasps' plan calls,
+    leaving out calls that compiled a program (`info["compiled"]`: e.g. a method's first use of a
+    rarely needed part, such as the planner's fallback Stage 1): their time is compilation, not planning.
 
     -> {"stage1_s": (mean, std, n), "stage2_s": ..., "total_s": ...}; (nan, nan, 0) without attempts.
     """
     values: dict[str, list[float]] = {k: [] for k in TIMING_KEYS}
     for log in logs:
         for attempt in log["attempts"]:
+            if (attempt.get("info") or {}).get("compiled"):
+                continue
             timing = attempt.get("timing") or {}
             for key in TIMING_KEYS:
                 if timing.get(key) is not None:

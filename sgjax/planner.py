@@ -72,6 +72,15 @@ def check_thresholds(config) -> None:
             raise ValueError(f"{name} must be in [0, 1), got {getattr(config, name)}")
 
 
+# The second plan's coarse filter (`PlannerConfig.fallback_filter`): the filters beyond the paper's off
+# (camera-ray shadows, hidden contacts judged by the fitted superquadric) and the paper's (ii) and (iii)
+# loosened to 25 points and 30 degrees, for the objects the default filters starve; E-RNet judges what it
+# lets through. On the benchmark (docs/benchmark.md, "A second plan when the first finds nothing") it
+# raised TSR on every setting (seen-10 93.3 -> 98.7, seen-20 86.9 -> 93.5, unseen-10 90.5 -> 93.5, held-out
+# seen-10 seed 1 93.0 -> 96.0) for 0.3-1.2 GSR points on seen objects and 4.7 on unseen ones.
+FALLBACK_FILTER = FilterConfig(shadow_depth=0.0, hidden_contacts="accept", max_normal_angle_deg=30.0, min_points=25)
+
+
 @dataclasses.dataclass(frozen=True)
 class PlannerConfig:
     """Planner settings (hashable).
@@ -99,9 +108,9 @@ class PlannerConfig:
     avoid_distance, avoid_angle_deg: a Stage-1 candidate this close to a pose passed as `avoid` (e.g. a
         grasp that already failed) is left out before Stage 2 (`gripper.near_grasps`).
     fallback_filter: when a plan finds no grasp (Stage 1 keeps no candidate, or E-RNet passes none),
-        plan once more with Stage 1's coarse filter set to this (e.g. without the filters beyond the
-        paper's), and let E-RNet judge what it lets through; `Plan.fallback` says when that plan was
-        executed. None: no second plan.
+        plan once more with Stage 1's coarse filter set to this, and let E-RNet judge what it lets
+        through; `Plan.fallback` says when that plan was executed. Default `FALLBACK_FILTER` (looser);
+        None: no second plan (the paper's planner).
     """
 
     stage1: Stage1Config = dataclasses.field(default_factory=Stage1Config)
@@ -116,7 +125,7 @@ class PlannerConfig:
     stage1_batch_sizes: tuple[int, ...] = (4,)
     avoid_distance: float = gripper.AVOID_DISTANCE
     avoid_angle_deg: float = gripper.AVOID_ANGLE_DEG
-    fallback_filter: FilterConfig | None = None
+    fallback_filter: FilterConfig | None = FALLBACK_FILTER
 
     def __post_init__(self):
         object.__setattr__(self, "stage1_batch_sizes", tuple(sorted({int(b) for b in self.stage1_batch_sizes})))

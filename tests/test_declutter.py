@@ -118,6 +118,11 @@ def test_timing_summary_is_per_executed_grasp():
     assert n == 3 and mean == pytest.approx(0.8 / 3) and std == pytest.approx(np.std([0.2, 0.2, 0.4]))
     assert times["stage1_s"][0] == pytest.approx(0.4 / 3)
     assert np.isnan(metrics.timing_summary([log(1, "")])["total_s"][0])
+    # A plan call that compiled a program is compilation time, not planning time: left out.
+    slow = log(2, "ss")
+    slow["attempts"][1].update(timing=timing(30.0), info={"compiled": True})
+    mean, _, n = metrics.timing_summary([slow])["total_s"]
+    assert n == 1 and mean == pytest.approx(0.2)
 
 
 def test_tables_follow_table_i_and_table_iii():
