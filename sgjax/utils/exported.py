@@ -89,6 +89,16 @@ def call(name: str, fn: Callable, args: tuple, static: Hashable = ()) -> Any:
     return jax.tree.unflatten(out_tree, run(*leaves))
 
 
+def ready(name: str, args: tuple, static: Hashable = ()) -> bool:
+    """Whether `call(name, fn, args, static)` would find its program without tracing it: loaded in this
+    process, or exported on disk (then a load, not a compile). False when exporting is off."""
+    if not enabled():
+        return False
+    leaves, treedef = jax.tree.flatten(args)
+    key = program_key(name, static, leaves, treedef)
+    return key in _loaded or (cache_dir("exported") / (key + SUFFIX)).exists()
+
+
 def _load_or_export(key: str, fn: Callable, leaves: list, treedef) -> tuple[Callable, Any]:
     enable_compilation_cache()  # the exported program's compilation is then a cache hit too
     path = cache_dir("exported") / (key + SUFFIX)
