@@ -235,8 +235,8 @@ def write_tables(out: str | os.PathLike, machine: str = "") -> dict[str, Path]:
         "Objects (a hash over the member names: equal hashes, equal objects):\n\n"
         f"{objects_markdown(rows)}\n\n"
         f"## Planning time per grasp (Table III style{note})\n\n"
-        "Mean ± std over the executed grasps' plan calls (wall seconds; JIT compilation excluded by a "
-        "warm-up call).\n\n"
+        "Mean ± std over the executed grasps' plan calls (wall seconds; JIT compilation excluded: a "
+        "warm-up call before the first scene, and plan calls that compiled are left out).\n\n"
         f"{table_iii_markdown(times)}\n"
     )
     _write_text(paths["results.md"], text)
