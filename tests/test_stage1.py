@@ -528,18 +528,26 @@ def test_scene_cloud_removes_grasps_through_the_table(stage):
     assert np.all(tips[:, 2] > -1e-3)
 
 
+NEIGHBOUR_BOX = (np.array([0.16, -0.05, 0.0]), np.array([0.21, 0.05, 0.035]))  # (lo, hi) corners
+
+
+def cuboid_and_neighbour() -> tuple[np.ndarray, np.ndarray]:
+    """A standing cuboid's single view and a box 8 mm beyond its end (NEIGHBOUR_BOX), between it and the
+    camera, of which only the faces CAMERA sees are sampled: the side facing the target is hidden."""
+    cloud, _ = single_view(Primitive("cuboid", (0.09, 0.054, 0.027)))
+    lo, hi = NEIGHBOUR_BOX
+    mesh = trimesh.creation.box(extents=hi - lo)
+    mesh.apply_translation(0.5 * (lo + hi))
+    pts, face = trimesh.sample.sample_surface(mesh, 6000, seed=1)
+    return cloud, pts[np.sum(mesh.face_normals[face] * (CAMERA - pts), 1) > 0]
+
+
 def test_stage1_keeps_hands_out_of_the_space_a_neighbour_hides(stage):
     """End to end, (iv) tests each obstacle point's camera-ray shadow (FilterConfig.shadow_depth)."""
     from sgjax.geometry.gripper import segment_regions, to_gripper_frame
 
-    cloud, _ = single_view(Primitive("cuboid", (0.09, 0.054, 0.027)))
-    # A box 8 mm beyond the target's end, between it and the camera: the side facing the target is
-    # hidden. Without the shadow, Stage 1 keeps ~50 grasps whose fingers reach into it from that side.
-    lo, hi = np.array([0.16, -0.05, 0.0]), np.array([0.21, 0.05, 0.035])
-    mesh = trimesh.creation.box(extents=hi - lo)
-    mesh.apply_translation(0.5 * (lo + hi))
-    pts, face = trimesh.sample.sample_surface(mesh, 6000, seed=1)
-    neighbour = pts[np.sum(mesh.face_normals[face] * (CAMERA - pts), 1) > 0]
+    # Without the shadow, Stage 1 keeps ~50 grasps whose fingers reach into the neighbour's hidden side.
+    cloud, neighbour = cuboid_and_neighbour()
     found = stage(cloud, np.concatenate([cloud, neighbour]), viewpoint=CAMERA)
     cfg = stage.config.filter
     assert cfg.shadow_depth > 0 and found.counts["collision_scene"] > 0 and len(found) > 0
@@ -557,12 +565,8 @@ def test_collisions_repeat_stage1s_tests_on_any_pose(stage):
     """`Stage1.collisions` (how the planner checks refined poses) runs (i), (iv) and (v) as Stage 1 does:
     every kept candidate passes it, and poses moved into the target, a neighbour or the table fail
     exactly the test for what they were moved into."""
-    cloud, _ = single_view(Primitive("cuboid", (0.09, 0.054, 0.027)))
-    lo, hi = np.array([0.16, -0.05, 0.0]), np.array([0.21, 0.05, 0.035])
-    mesh = trimesh.creation.box(extents=hi - lo)
-    mesh.apply_translation(0.5 * (lo + hi))
-    pts, face = trimesh.sample.sample_surface(mesh, 6000, seed=1)
-    neighbour = pts[np.sum(mesh.face_normals[face] * (CAMERA - pts), 1) > 0]
+    cloud, neighbour = cuboid_and_neighbour()
+    lo, hi = NEIGHBOUR_BOX
     obstacles, plane = np.concatenate([cloud, neighbour]), (0.0, 0.0, 1.0, 0.0)
     found = stage(cloud, obstacles, viewpoint=CAMERA, support_plane=plane)
     assert len(found) > 10
