@@ -24,7 +24,6 @@ the same placements and outcomes.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import os
 import sys
@@ -37,7 +36,6 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from envs.objects import load_object_set  # noqa: E402
 from eval import single_object  # noqa: E402
 from eval.report import markdown_table  # noqa: E402
-from sgjax.geometry.pointcloud import table_plane  # noqa: E402
 
 
 def kinds_for(name: str) -> tuple[str, ...]:
@@ -49,7 +47,6 @@ def run(args) -> list[dict]:
     from eval.supergrasp import PlannerMethod
 
     method = PlannerMethod("supergrasp", True, model=args.model, small_db=args.small_db)
-    planner = method.planner
     rng = np.random.default_rng(args.seed)
     rows = []
     for asset in load_object_set(args.objects):
@@ -59,9 +56,7 @@ def run(args) -> list[dict]:
                 setup = single_object.alone(asset, pose, seed)
                 if setup is None:
                     continue
-                obs = setup.obs
-                planner.config = dataclasses.replace(method.config, support_plane=table_plane(obs.points, obs.point_labels))
-                plan = planner.plan(obs.points, obs.point_labels, setup.viewpoint, seed)
+                plan = method.full_plan(setup.obs.points, setup.obs.point_labels, setup.viewpoint, seed)
                 row = {"object": asset.name, "class": single_object.shape_class(asset.name), "kind": kind, "placement": i,
                        "candidates": int(plan.n_candidates), "chosen": 0.0, "top": None, "stage1": None,
                        "plan_kind": plan.kind, "reason": plan.reason}
@@ -69,11 +64,10 @@ def run(args) -> list[dict]:
                 if plan.ok:
                     poses.append(plan.pose), widths.append(plan.width), groups.append("chosen")
                 if plan.n_candidates:
-                    s = plan.scores
-                    order = np.argsort(-np.where(s["valid"], s["eval_prob"], -1.0), kind="stable")[: args.top]
-                    for j in order:
-                        c, r = plan.candidates[s["object"][j]], s["object_candidate"][j]
-                        poses.append(c.poses[r]), widths.append(c.widths[r]), groups.append("top")
+                    top_poses, top_widths = single_object.best_scored(plan, args.top)
+                    poses += top_poses
+                    widths += top_widths
+                    groups += ["top"] * len(top_poses)
                     c = plan.candidates[0]
                     for r in single_object.spread_rows(len(c), args.top):
                         poses.append(c.poses[r]), widths.append(c.widths[r]), groups.append("stage1")

@@ -77,6 +77,16 @@ def success(setup: Alone, poses, widths) -> np.ndarray:
     return np.asarray(trial_lib.run_trials(setup.scene, 0, np.asarray(poses), np.asarray(widths)).label, bool)
 
 
+def best_scored(plan, k: int, skip: int | None = None) -> tuple[list, list]:
+    """The k best-scored of a `sgjax.planner.Plan`'s scored candidates by E-RNet's eval score (valid ones
+    first), leaving out row `skip` of its scores -> (poses [4, 4] list, widths list), best first."""
+    s = plan.scores
+    order = [j for j in np.argsort(-np.where(s["valid"], s["eval_prob"], -1.0), kind="stable") if j != skip][:k]
+    picked = [plan.candidates[s["object"][j]] for j in order]
+    rows = [s["object_candidate"][j] for j in order]
+    return [c.poses[r] for c, r in zip(picked, rows)], [c.widths[r] for c, r in zip(picked, rows)]
+
+
 def spread_rows(n: int, k: int) -> np.ndarray:
     """Up to k row indices spread evenly over 0..n-1 (first and last included), unique, ascending."""
     if n <= 0 or k <= 0:

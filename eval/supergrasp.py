@@ -41,14 +41,19 @@ class PlannerMethod:
         self.name = name
         self.planner = Planner(model=model, db=db, config=self.config)
 
-    def plan(self, points: np.ndarray, labels: np.ndarray, viewpoint, seed: int = 0, avoid=None) -> Decision:
+    def full_plan(self, points: np.ndarray, labels: np.ndarray, viewpoint, seed: int = 0, avoid=None):
+        """The planner's whole `sgjax.planner.Plan` (candidates and scores included) for an observation
+        (points [N, 3], labels [N]), with the table plane read from it as `plan` does."""
         points, labels = np.asarray(points), np.asarray(labels)
         if self.config.support_plane is None:
             plane = table_plane(points, labels)
             config = self.config if plane is None else dataclasses.replace(self.config, support_plane=plane)
             if config != self.planner.config:
                 self.planner.config = config
-        plan = self.planner.plan(points, labels, np.asarray(viewpoint, np.float64), seed, avoid)
+        return self.planner.plan(points, labels, np.asarray(viewpoint, np.float64), seed, avoid)
+
+    def plan(self, points: np.ndarray, labels: np.ndarray, viewpoint, seed: int = 0, avoid=None) -> Decision:
+        plan = self.full_plan(points, labels, viewpoint, seed, avoid)
         timing = {k: float((plan.timing or {}).get(k, 0.0)) for k in TIMING_KEYS}
         info = {"kind": plan.kind, "target": plan.target, "n_candidates": int(plan.n_candidates),
                 "compiled": bool((plan.timing or {}).get("compiled", False))}

@@ -8,14 +8,12 @@ in the benchmark's trial. `benchmarks/tapered_objects.py` measures the same at f
 
 from __future__ import annotations
 
-import dataclasses
 
 import numpy as np
 import pytest
 
 from envs.objects import load_object_set
 from eval import single_object
-from sgjax.geometry.pointcloud import table_plane
 
 OBJECTS = ("tapered/cylinder_r28", "tapered/frustum_r30_r18", "tapered/cup_r22_r30")
 EXECUTED = 6  # the chosen grasp and the next best-scored candidates, per placement
@@ -40,16 +38,10 @@ def outcomes(small_db) -> dict[str, list[bool]]:
             for pose in single_object.placements(assets[name].extents, kind, 1, rng):
                 setup = single_object.alone(assets[name], pose, seed=int(rng.integers(2**31)))
                 assert setup is not None, f"{name} left the table while settling"
-                obs = setup.obs
-                method.planner.config = dataclasses.replace(method.config,
-                                                            support_plane=table_plane(obs.points, obs.point_labels))
-                plan = method.planner.plan(obs.points, obs.point_labels, setup.viewpoint, seed=0)
+                plan = method.full_plan(setup.obs.points, setup.obs.point_labels, setup.viewpoint, seed=0)
                 assert plan.ok, f"{name} {kind}: no grasp ({plan.reason})"
-                s = plan.scores
-                best = np.argsort(-np.where(s["valid"], s["eval_prob"], -1.0), kind="stable")
-                best = [j for j in best if j != plan.candidate_index][: EXECUTED - 1]
-                poses = [plan.pose] + [plan.candidates[s["object"][j]].poses[s["object_candidate"][j]] for j in best]
-                widths = [plan.width] + [plan.candidates[s["object"][j]].widths[s["object_candidate"][j]] for j in best]
+                poses, widths = single_object.best_scored(plan, EXECUTED - 1, skip=plan.candidate_index)
+                poses, widths = [plan.pose, *poses], [plan.width, *widths]
                 found.setdefault(name, []).extend(single_object.success(setup, poses, widths).tolist())
     return found
 
