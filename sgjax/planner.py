@@ -574,11 +574,7 @@ class Planner:
             timing.update(stage2_s=t2 - t1, total_s=t2 - start, compiled=_compile_count() != compiled)
         kind = int(choice["kind"])
         if kind == KIND_NONE:
-            reason = self._why_not(scores, m)
-            if rejected:
-                reason = (f"best eval {float(scores['eval_prob'][scores['valid']].max()):.2f} <= {cfg.eval_threshold:g}, and "
-                          f"the {rejected} refined pose(s) scored above {cfg.refine_threshold:g} meet an obstacle or the table")
-            plan = self._empty(reason, infos, start, candidates, timing)
+            plan = self._empty(self._why_not(scores, m, rejected), infos, start, candidates, timing)
             plan.scores, plan.score, plan.refinements_rejected = scores, float(choice["score"]), rejected
             return plan
         index = int(choice["index"])
@@ -655,7 +651,9 @@ class Planner:
         fn, args, static = self._stage2_call(scene_pad, scene_mask, poses, widths, slots, seed, thresholds)
         return jax.tree.map(np.asarray, exported.call("stage2", fn, args, static))
 
-    def _why_not(self, scores: dict, m: int) -> str:
+    def _why_not(self, scores: dict, m: int, rejected: int = 0) -> str:
+        """Why the policy chose nothing among m scored candidates; rejected: refined poses it chose that
+        failed the collision tests (`_collision_free`)."""
         cfg = self.config
         valid = scores["valid"]
         if not valid.any():
@@ -664,6 +662,9 @@ class Planner:
         text = f"best eval {best_eval:.2f} <= {cfg.eval_threshold:g}"
         if not cfg.use_refinement:
             return text + " (refinement disabled)"
+        if rejected:
+            return (text + f", and the {rejected} refined pose(s) scored above {cfg.refine_threshold:g} meet an "
+                    "obstacle or the table")
         best_refine = float(scores["refine_prob"][valid].max())
         return text + f" and best refine {best_refine:.2f} <= {cfg.refine_threshold:g}"
 
