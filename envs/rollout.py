@@ -199,6 +199,10 @@ class TrialResult:
     max_speed: [M] fastest object speed over the trial (m/s).
     final_qpos: [M, nq] joint positions where each trial ended (or stopped early): what a failed grasp
         did to the scene (`envs.scene.after_trial`).
+    decided_at: [M] the Phase that decided the outcome (the first failing one; the last for a success).
+    contacts: [M, P, S] the largest count of each contact sensor over each phase (`Rollout.contact_max`;
+        sensor order `envs.gripper_model.contact_sensor_names`): what the gripper touched, read by
+        `touched`.
     """
 
     outcome: np.ndarray
@@ -210,6 +214,8 @@ class TrialResult:
     slip: np.ndarray
     max_speed: np.ndarray
     final_qpos: np.ndarray
+    decided_at: np.ndarray
+    contacts: np.ndarray
 
     @property
     def label(self) -> np.ndarray:
@@ -557,4 +563,24 @@ def classify(judge: Judge, rollout: Rollout) -> TrialResult:
         slip=judge.slip(rollout, rows),
         max_speed=max_speed,
         final_qpos=rollout.end_qpos[:, -1],
+        decided_at=decided_at,
+        contacts=rollout.contact_max,
     )
+
+
+def touched(result: TrialResult, lay: Layout, row: int, phase: Phase) -> dict:
+    """What the gripper of trial `row` touched during `phase`: {"table": bool, "objects": {n: part}}.
+
+    part is "finger" where a finger touched object n, "palm" where only the palm did, "finger+palm" where
+    both did. The sensors report the largest contact count per phase, so the palm is named only when the
+    gripper's count exceeds both fingers' together (the palm surely touched at that step); a palm contact
+    hidden behind finger contacts is reported as "finger".
+    """
+    counts = result.contacts[row, phase]
+    objects = {}
+    for n, (gripper, left, right) in enumerate(counts[lay.sensor_object]):
+        if gripper <= 0:
+            continue
+        finger, palm = left > 0 or right > 0, gripper > left + right
+        objects[n] = "finger+palm" if finger and palm else "finger" if finger else "palm"
+    return {"table": bool(counts[lay.sensor_table] > 0), "objects": objects}

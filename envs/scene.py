@@ -507,6 +507,21 @@ def after_trial(scene: Scene, qpos: np.ndarray) -> Scene:
     return _finish(model, data, scene.assets, scene.body_ids, present, scene.seed, scene.config, scene.gripper, at_rest)
 
 
+def with_gripper(scene: Scene, gripper: GripperSpec, like: Scene | None = None) -> Scene:
+    """The same scene state with a simulated gripper built from another GripperSpec (e.g. to replay a
+    grasp with another hand from the same objects' poses). The gripper waits at its home, away from the
+    table, so no object feels the change; the state is reused as it is. like: an earlier result of this
+    function for the same objects, whose compiled model is reused (compiling costs ~0.1 s per object)."""
+    if gripper == scene.gripper:
+        return scene
+    if like is not None and like.gripper == gripper and like.assets == scene.assets and like.config == scene.config:
+        return dataclasses.replace(scene, model=like.model, gripper=gripper)
+    model = build_spec(scene.assets, scene.config, gripper).compile()
+    if mujoco.mj_stateSize(model, STATE_SPEC) != len(scene.state):
+        raise ValueError("the gripper changes the scene's state layout; a GripperSpec only changes sizes")
+    return dataclasses.replace(scene, model=model, gripper=gripper)
+
+
 def remove_object(scene: Scene, index: int, settle: bool = True) -> Scene:
     """The scene with object `index` removed (parked), the rest re-settled when `settle` (default).
 

@@ -27,6 +27,7 @@ from envs.rollout import (
     classify,
     layout,
     make_schedule,
+    touched,
 )
 from sgjax.geometry.gripper import GripperSpec, enlarged_region_poses
 
@@ -39,6 +40,7 @@ __all__ = [
     "check_backend",
     "run_grasp_with_refinements",
     "run_trials",
+    "what_touched",
 ]
 
 # ---------------------------------------------------------------------------------------------
@@ -136,3 +138,13 @@ def run_grasp_with_refinements(
         nthread=nthread,
     )
     return result.label.reshape(len(poses), k), result
+
+
+def what_touched(scene: scene_lib.Scene, result: TrialResult, row: int, phase: Phase | None = None) -> dict:
+    """What trial `row` of `result` (run on `scene`) touched during `phase`, by default the phase that
+    decided its outcome: {"phase": name, "table": bool, "objects": {object index: "finger" | "palm" |
+    "finger+palm"}} (`envs.rollout.touched`). For a collision outcome, the table or an object other than
+    the target here is what failed the trial.
+    """
+    phase = Phase(int(result.decided_at[row]) if phase is None else phase)
+    return {"phase": phase.name.lower(), **touched(result, layout(scene), row, phase)}

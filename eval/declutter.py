@@ -182,7 +182,9 @@ def run_scene(
     "final_reason", "final_timing", "fell_out", "remaining", "memory", "wall_s"}; each attempt:
     {"attempt", "target", "target_name", "outcome", "success", "score", "width", "pose" [4][4],
     "points_in_gripper" {object: count}, "timing" {stage1_s, stage2_s, total_s}, "plan_seed",
-    "avoided" (failed poses handed to the method), "observe_s", "trial_s", "info"}.
+    "avoided" (failed poses handed to the method), "observe_s", "trial_s", "info"}; a simulated attempt
+    that failed also has "contacts": what the gripper touched in the phase that decided it
+    (`envs.trial.what_touched`: {"phase", "table", "objects" {object: "finger" | "palm" | "finger+palm"}}).
     """
     start = time.perf_counter()
     config = config or DeclutterConfig()
@@ -258,6 +260,8 @@ def run_scene(
         if record["success"]:
             scene = scene_lib.remove_object(scene, target)
         else:  # the objects stay where the failed grasp left them (knocked over, dropped)
+            touched = trial_lib.what_touched(scene, result, 0)
+            record["contacts"] = {**touched, "objects": {str(k): v for k, v in touched["objects"].items()}}
             failed.append(pose)
             scene = scene_lib.after_trial(scene, result.final_qpos[0])
         fell_out += [int(i) for i in np.flatnonzero(before & ~scene.present) if i != target or not record["success"]]

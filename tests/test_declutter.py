@@ -179,6 +179,44 @@ def test_gpd_baseline_runs_a_tiny_scene(gpd_run):
     assert log_["end"] in ("cleared", "attempt_cap", "no_grasp")
 
 
+def test_a_scene_log_replays_attempt_by_attempt(objects, gpd_run):
+    """eval.replay re-executes the logged grasps without the method: the same outcomes, the same contacts
+    as the harness logged for failed trials, and each grasp also with the Panda hand; a log that does not
+    match the simulation stops the replay where it diverges."""
+    from eval.replay import collision_cause, replay_scene
+    from sgjax.geometry.gripper import PANDA_HAND
+
+    log_ = gpd_run.log
+    simulated = [a for a in log_["attempts"] if a["target"] is not None]
+    assert any(not a["success"] for a in simulated) and any(a["success"] for a in simulated)
+    replayed = replay_scene(log_, objects, CONFIG, other=PANDA_HAND)
+    assert [r.outcome for r in replayed] == [a["outcome"] for a in log_["attempts"]]
+    assert all(r.reproduced for r in replayed)
+    for r, a in zip(replayed, log_["attempts"]):
+        if a["target"] is None:
+            assert r.other_outcome == "" and "contacts" not in a
+        elif a["success"]:
+            assert r.contacts == {} and "contacts" not in a
+        else:
+            assert {**r.contacts, "objects": {str(k): v for k, v in r.contacts["objects"].items()}} == a["contacts"]
+            assert a["contacts"]["phase"] in ("pregrasp", "approach", "close", "lift", "hold", "disturb")
+        if a["target"] is not None:
+            assert r.other_outcome in {"success", "collision_pregrasp", "collision_approach", "dropped_lift",
+                                       "dropped_reorient", "dropped_disturbance", "invalid"}
+            assert np.isfinite(r.com_depth) and abs(r.com_depth) < 0.2
+        if r.outcome.startswith("collision"):
+            assert collision_cause(r) in ("table", "table + neighbour", "target only") or collision_cause(r).startswith("neighbour")
+    # A changed outcome in the log: the replay stops at that attempt.
+    k = next(i for i, a in enumerate(log_["attempts"]) if a["target"] is not None)
+    changed = json.loads(json.dumps(log_))
+    changed["attempts"][k]["outcome"] = "dropped_reorient" if log_["attempts"][k]["success"] else "success"
+    diverged = replay_scene(changed, objects, CONFIG)
+    assert len(diverged) == k + 1 and not diverged[-1].reproduced
+    wrong = dict(log_, object_names=log_["object_names"][::-1])
+    with pytest.raises(ValueError, match="other objects"):
+        replay_scene(wrong, objects, CONFIG)
+
+
 def test_same_seed_same_scene_for_every_method(objects, oracle_run, gpd_run):
     first, second = oracle_run.first_observation, gpd_run.first_observation
     np.testing.assert_array_equal(first.points, second.points)

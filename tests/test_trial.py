@@ -111,6 +111,49 @@ def test_instability_after_a_decided_failure_does_not_change_it(pair):
     assert outcome_with("end_qpos", (1, Phase.LIFT, 0), np.nan) == [Outcome.COLLISION_APPROACH, Outcome.INVALID]
 
 
+def test_what_touched_names_the_table_the_neighbour_and_the_part_of_the_hand(pair, assets):
+    # (1) the right finger into the neighbour; (2) fingertips 5 mm below the table top, away from the cubes.
+    low = grasp(DOWN, [0.2, 0.2, scene_lib.GripperSpec().finger_length - 0.005])
+    result = trial.run_trials(pair, 0, np.stack([ACROSS_X, low, ACROSS_X]), [0.075, 0.065, 0.065])
+    assert result.outcome.tolist() == [Outcome.COLLISION_APPROACH, Outcome.COLLISION_APPROACH, Outcome.SUCCESS]
+    assert result.decided_at.tolist() == [Phase.APPROACH, Phase.APPROACH, Phase.DISTURB]
+    finger = trial.what_touched(pair, result, 0)
+    assert finger["phase"] == "approach" and not finger["table"] and finger["objects"][1] == "finger"
+    table = trial.what_touched(pair, result, 1)
+    assert table == {"phase": "approach", "table": True, "objects": {}}
+    held = trial.what_touched(pair, result, 2, Phase.LIFT)
+    assert held == {"phase": "lift", "table": False, "objects": {0: "finger"}}
+    # (3) A 16 cm tall neighbour 1.5 cm beside the open fingers: the 10 cm palm meets it, the fingers do not.
+    tall = scene_lib.arrange_scene([assets["box_a"], assets["box_c"]], [[0, 0, 0.026, *IDENTITY], [0.06, 0, 0.081, *IDENTITY]])
+    palm = trial.run_trials(tall, 0, ACROSS_X[None], [0.065])
+    assert palm.outcome[0] == Outcome.COLLISION_PREGRASP  # the palm is below the neighbour's top already there
+    assert trial.what_touched(tall, palm, 0)["objects"] == {1: "palm"}
+
+
+def test_the_same_scene_with_a_panda_hand(pair):
+    """with_gripper keeps the objects' state and swaps the hand: the Panda's 2 cm fingers (ours: 1 cm)
+    at the same fingertip position and opening reach into the neighbour 2 cm away."""
+    from eval.replay import fingertips_aligned
+    from sgjax.geometry.gripper import PANDA_HAND
+
+    panda = scene_lib.with_gripper(pair, PANDA_HAND)
+    assert panda.gripper == PANDA_HAND and panda.model is not pair.model
+    np.testing.assert_array_equal(panda.state, pair.state)
+    np.testing.assert_allclose(panda.object_poses(), pair.object_poses())
+    assert scene_lib.with_gripper(pair, pair.gripper) is pair
+    assert scene_lib.with_gripper(pair, PANDA_HAND, like=panda).model is panda.model
+    pose = fingertips_aligned(ACROSS_X, pair.gripper, PANDA_HAND)
+    np.testing.assert_allclose(pose[2, 3] - PANDA_HAND.finger_length, ACROSS_X[2, 3] - pair.gripper.finger_length)
+    ours = trial.run_trials(pair, 0, ACROSS_X[None], [0.065])
+    theirs = trial.run_trials(panda, 0, pose[None], [0.065])
+    assert ours.outcome.tolist() == [Outcome.SUCCESS]
+    assert theirs.outcome.tolist() == [Outcome.COLLISION_APPROACH]
+    assert trial.what_touched(panda, theirs, 0)["objects"][1] == "finger"
+    # Closing along y instead, away from the neighbour, the Panda hand grasps the cube too.
+    along_y = grasp(np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]]), pose[:3, 3])
+    assert trial.run_trials(panda, 0, along_y[None], [0.065]).outcome.tolist() == [Outcome.SUCCESS]
+
+
 def test_gripper_placed_in_an_object_collides_before_the_approach(pair):
     # 3 cm open with the fingertips 4 cm up at the pre-grasp: the fingers are inside the 5 cm cube.
     origin_z = 0.04 + scene_lib.GripperSpec().finger_length - trial.TrialConfig().pregrasp_distance

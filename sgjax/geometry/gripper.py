@@ -87,6 +87,21 @@ class GripperSpec:
         return len(self.refine_angles_deg)
 
 
+# The Franka Emika Panda hand as boxes, measured on the meshes Contact-GraspNet trains with (cgn-pytorch
+# 0.4.3's gripper/mesh/panda_gripper: hand.stl 0.204 x 0.063 m across, 0.058 m from its base to the
+# fingers' base, its y extent tapering 0.062 -> 0.036 m towards the fingers; finger.stl 0.054 m long,
+# 0.021 m wide, 0.026 -> 0.015 m thick towards the tip). Middle values where the mesh tapers; the
+# wrist and arm behind the hand are not modelled. Same stroke (8 cm) as the default GripperSpec, whose
+# palm (10 x 3 x 2 cm) and fingers (1 cm thick) are smaller: for replaying a grasp with a Panda hand.
+PANDA_HAND = GripperSpec(
+    max_opening=0.08,
+    finger_length=0.0538,
+    finger_width=0.021,
+    finger_thickness=0.02,
+    palm_size=(0.204, 0.05, 0.058),
+)
+
+
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class Box:

@@ -1,0 +1,142 @@
+"""Why a method's grasps fail, from its benchmark logs: replay each scene's grasps in simulation, with our
+gripper and with a Panda hand (issue 22: which contacts, which phase, and would a Panda fail too).
+
+    python benchmarks/replay_failures.py RESULTS_DIR --method contact-graspnet --setting seen-10
+                                         [--seed 0] [--scenes 0-29] [--other panda|none] [--out DIR]
+
+RESULTS_DIR is a `sgjax declutter --out` folder. Each scene log is replayed (`eval.replay.replay_scene`:
+the logged grasps in order, from the same scene, no planner); per attempt the replay records the
+replayed outcome, what the gripper touched in the phase that decided a failure, and the outcome of the
+same grasp with the other hand (`sgjax.geometry.gripper.PANDA_HAND`: fingertips where ours were, the same
+opening). Results go to OUT/<method>/<setting>/seed<seed>/scene_XXX.json (resumable: scenes already
+there are read back). Prints: failed attempts by logged outcome and by what they touched; our outcome
+against the other hand's for the same grasps.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+
+from eval import declutter
+from eval.benchmark import resolve_objects
+from eval.replay import ReplayedAttempt, collision_cause, replay_scene
+from sgjax.geometry.gripper import PANDA_HAND
+from sgjax.utils.files import atomic_write_text
+
+OTHERS = {"panda": PANDA_HAND, "none": None}
+
+
+def scene_range(text: str) -> list[int]:
+    """ "0-29" or "3" or "0,4,7" -> indices."""
+    out = []
+    for part in text.split(","):
+        lo, _, hi = part.partition("-")
+        out += list(range(int(lo), int(hi or lo) + 1))
+    return out
+
+
+def replay_logs(logs: list[dict], other_name: str, out: Path) -> list[ReplayedAttempt]:
+    """Replay each log (or read its replay back from `out`); all attempts, scene after scene."""
+    objects = {}
+    attempts = []
+    for log in logs:
+        path = out / f"scene_{int(log['scene_index']):03d}.json"
+        if path.exists():
+            saved = json.loads(path.read_text())
+            attempts += [ReplayedAttempt(**a) for a in saved["attempts"]]
+            continue
+        name = log["object_set"]["name"]
+        if name not in objects:
+            setting = declutter.Setting(log["setting"], int(log["n_objects"]), name)
+            objects[name] = resolve_objects(setting)[0]
+        replayed = replay_scene(log, objects[name], other=OTHERS[other_name])
+        text = json.dumps({"scene_index": log["scene_index"], "other": other_name,
+                           "attempts": [dataclasses.asdict(a) for a in replayed]})
+        atomic_write_text(path, text)
+        # JSON turns object indices into strings: read the saved form back so both paths agree.
+        attempts += [ReplayedAttempt(**a) for a in json.loads(text)["attempts"]]
+        print(f"scene {log['scene_index']}: {len(replayed)} attempts, "
+              f"{sum(a.reproduced for a in replayed)} reproduced", flush=True)
+    return attempts
+
+
+def _as_int_keys(attempt: ReplayedAttempt) -> ReplayedAttempt:
+    def fix(contacts: dict) -> dict:
+        return {**contacts, "objects": {int(k): v for k, v in contacts.get("objects", {}).items()}} if contacts else {}
+
+    return dataclasses.replace(attempt, contacts=fix(attempt.contacts), other_contacts=fix(attempt.other_contacts))
+
+
+def print_tables(attempts: list[ReplayedAttempt], other_name: str) -> None:
+    attempts = [_as_int_keys(a) for a in attempts]
+    simulated = [a for a in attempts if a.outcome != declutter.NO_OBJECT]
+    reproduced = [a for a in simulated if a.reproduced]
+    print(f"\n{len(attempts)} attempts, {len(simulated)} simulated, {len(reproduced)} reproduced the logged outcome")
+    failed = [a for a in reproduced if a.outcome != "success"]
+    print("\n| logged outcome | n | what decided it (phase: touched) | what it touched was in the observation |")
+    print("|---|---:|---|---|")
+    for outcome, group in sorted(collections.Counter(a.outcome for a in failed).items()):
+        rows = [a for a in failed if a.outcome == outcome]
+        causes = collections.Counter(
+            collision_cause(a) if outcome.startswith("collision") else
+            f"{a.contacts['phase']}: target by {', '.join(sorted(set(a.contacts['objects'].get(a.target, 'nothing').split('+'))))}"
+            for a in rows)
+        seen = ""
+        if outcome.startswith("collision"):
+            hit_neighbour = [a for a in rows if "neighbour" in collision_cause(a)]
+            hit_table = [a for a in rows if "table" in collision_cause(a)]
+            seen = (f"neighbour points in the swept hand: {sum(a.seen_neighbour > 0 for a in hit_neighbour)} of "
+                    f"{len(hit_neighbour)}; table points: {sum(a.seen_table > 0 for a in hit_table)} of {len(hit_table)}")
+        print(f"| {outcome} | {len(rows)} | {'; '.join(f'{c} {n}' for c, n in causes.most_common())} | {seen} |")
+    print("\nHow deep the grasps held the target (its centre of mass behind the fingertips after closing, cm; "
+          "median and quartiles):\n")
+    print("| outcome | n | depth |")
+    print("|---|---:|---|")
+    for outcome in sorted({a.outcome for a in reproduced if not a.outcome.startswith("collision")}):
+        depth = 100 * np.array([a.com_depth for a in reproduced if a.outcome == outcome])
+        q = np.percentile(depth, [25, 50, 75])
+        print(f"| {outcome} | {len(depth)} | {q[1]:.1f} ({q[0]:.1f}-{q[2]:.1f}) |")
+    if other_name == "none":
+        return
+    others = sorted({a.other_outcome for a in reproduced})
+    print(f"\nThe same grasps with the {other_name} hand (rows: ours, columns: {other_name}):\n")
+    print("| ours \\ " + other_name + " | " + " | ".join(others) + " | n |")
+    print("|---|" + "---:|" * (len(others) + 1))
+    for outcome in sorted({a.outcome for a in reproduced}):
+        row = collections.Counter(a.other_outcome for a in reproduced if a.outcome == outcome)
+        print(f"| {outcome} | " + " | ".join(str(row.get(o, 0)) for o in others) + f" | {sum(row.values())} |")
+    causes = collections.Counter(collision_cause(a, other=True) for a in reproduced if a.other_outcome.startswith("collision"))
+    print(f"\n{other_name} collisions by what they touched: " + "; ".join(f"{c} {n}" for c, n in causes.most_common()))
+    ok = sum(a.outcome == "success" for a in reproduced), sum(a.other_outcome == "success" for a in reproduced)
+    print(f"success: ours {ok[0]} / {len(reproduced)}, {other_name} {ok[1]} / {len(reproduced)}")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("results", type=Path, help="a `sgjax declutter --out` folder")
+    parser.add_argument("--method", required=True)
+    parser.add_argument("--setting", required=True)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--scenes", default="0-29", help="indices: 0-29, 3, 0,4,7")
+    parser.add_argument("--other", choices=sorted(OTHERS), default="panda")
+    parser.add_argument("--out", type=Path, default=Path("replay_out"))
+    args = parser.parse_args()
+    folder = args.results / "logs" / args.method / args.setting / f"seed{args.seed}"
+    paths = [folder / f"scene_{i:03d}.json" for i in scene_range(args.scenes)]
+    logs = [json.loads(p.read_text()) for p in paths if p.exists()]
+    if not logs:
+        raise SystemExit(f"no scene logs under {folder} for scenes {args.scenes}")
+    out = args.out / args.method / args.setting / f"seed{args.seed}"
+    out.mkdir(parents=True, exist_ok=True)
+    attempts = replay_logs(logs, args.other, out)
+    print_tables(attempts, args.other)
+
+
+if __name__ == "__main__":
+    main()
