@@ -70,9 +70,10 @@ def make_scene(seed: int = 0, n_table: int = 12000, n_per_object: int = 1350, n_
 
 
 def make_candidates(m: int, centres: np.ndarray, tops: np.ndarray, seed: int = 1):
-    """-> poses[M, 4, 4], widths[M]: approach roughly downwards onto the objects."""
+    """-> poses[M, 4, 4], widths[M]: approach roughly downwards onto the objects, object by object (the
+    order the planner hands Stage 2 its candidates in, which the crop's chunks rely on)."""
     rng = np.random.default_rng(seed)
-    which = rng.integers(0, len(centres), m)
+    which = np.sort(rng.integers(0, len(centres), m))
     poses = np.tile(np.eye(4, dtype=np.float32), (m, 1, 1))
     for i in range(m):
         tilt, azimuth, yaw = np.deg2rad(rng.uniform(0, 30)), rng.uniform(0, 2 * np.pi), rng.uniform(0, np.pi)

@@ -75,6 +75,48 @@ def test_crop_is_exactly_the_enlarged_region(seed, width, capacity):
     assert truncated == (6 if capacity == 32 else 0)
 
 
+def test_chunked_crops_equal_testing_every_point(monkeypatch):
+    """Crops test each chunk of candidates against the scene points in a box around their regions
+    (crops.CHUNK, SUBSET_FRACTIONS) or, when the box holds too many, against all: the same crops as the
+    region tests on every point, for the three region kinds, a subset tier and the fallback."""
+    rng = np.random.default_rng(5)
+    scene = np.c_[rng.uniform(-0.3, 0.3, (6000, 2)), rng.uniform(0.0, 0.1, 6000)].astype(np.float32)
+    scene[::97] = np.nan  # absent points are never cropped
+    m = crops.CHUNK + 6
+    poses = random_poses(6, m)
+    poses[: crops.CHUNK, :3, 3] = poses[: crops.CHUNK, :3, 3] * 0.2 + [0.2, 0.2, 0.05]  # chunk 0: one spot
+    poses[crops.CHUNK :, :3, 3] = rng.uniform([-0.3, -0.3, 0.0], [0.3, 0.3, 0.1], (6, 3))  # chunk 1: everywhere
+    widths = rng.uniform(0.03, 0.08, m).astype(np.float32)
+    local = np.asarray(to_local(scene[None], poses))  # [M, N, 3]
+    tests = {
+        "crop_closing_regions": (crops.in_closing_region_local(local, widths, SPEC), "closing"),
+        "crop_regions": (crops.in_enlarged_region_local(local, widths, SPEC), "enlarged"),
+        "crop_swept_regions": (crops.in_swept_hand_local(local, widths, SPEC, crops.HAND_SWEEP, crops.HAND_MARGIN)
+                               | crops.in_enlarged_region_local(local, widths, SPEC), "swept"),
+    }
+    for name, (inside, kind) in tests.items():
+        inside = np.asarray(inside) & np.isfinite(scene).all(-1)
+        # The setup exercises both paths: chunk 0's box holds a small share of the scene, chunk 1's most.
+        centre, half = (np.asarray(a) for a in crops._local_bounds(SPEC, widths, kind, crops.HAND_SWEEP, crops.HAND_MARGIN))
+        world_c = np.einsum("mij,mj->mi", poses[:, :3, :3], centre) + poses[:, :3, 3]
+        world_h = np.einsum("mij,mj->mi", np.abs(poses[:, :3, :3]), half)
+        share = [np.all((scene >= (world_c - world_h)[s].min(0)) & (scene <= (world_c + world_h)[s].max(0)), -1).mean()
+                 for s in (slice(0, crops.CHUNK), slice(crops.CHUNK, m))]
+        assert share[0] <= min(crops.SUBSET_FRACTIONS) and share[1] > max(crops.SUBSET_FRACTIONS)
+        assert np.all(inside.sum(1) <= np.all((scene[None] >= (world_c - world_h)[:, None]) & (scene[None] <= (world_c + world_h)[:, None]), -1).sum(1))
+        region = getattr(crops, name)(scene, poses, widths, SPEC, 64)
+        for k in range(m):
+            found = np.flatnonzero(inside[k])
+            assert int(region.count[k]) == len(found), (name, k)
+            kept = np.asarray(region.points[k])[np.asarray(region.mask[k])]
+            np.testing.assert_allclose(kept, local[k, found[:64]], atol=1e-6)
+        monkeypatch.setattr(crops, "SUBSET_FRACTIONS", ())  # every chunk tests every point
+        every = getattr(crops, name)(scene, poses, widths, SPEC, 64)
+        monkeypatch.undo()
+        for a, b in zip(jax.tree.leaves(region), jax.tree.leaves(every)):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
 def test_prepare_inputs_anchor_is_the_closing_region():
     poses = random_poses(3, 6)
     widths = np.linspace(0.03, 0.08, 6).astype(np.float32)
