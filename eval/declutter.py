@@ -182,7 +182,8 @@ def run_scene(
     "final_reason", "final_timing", "fell_out", "remaining", "memory", "wall_s"}; each attempt:
     {"attempt", "target", "target_name", "outcome", "success", "score", "width", "pose" [4][4],
     "points_in_gripper" {object: count}, "timing" {stage1_s, stage2_s, total_s}, "plan_seed",
-    "avoided" (failed poses handed to the method), "observe_s", "trial_s", "info"}; a simulated attempt
+    "avoided" (failed poses handed to the method), "observe_s", "trial_s", "settle_s" (the scene's update
+    after the trial: the object removed or the scene left as the trial left it, re-settled), "info"}; a simulated attempt
     that failed also has "contacts": what the gripper touched in the phase that decided it
     (`envs.trial.what_touched`: {"phase", "table", "objects" {object: "finger" | "palm" | "finger+palm"}}).
     """
@@ -257,6 +258,7 @@ def run_scene(
         record.update(target=int(target), target_name=scene.assets[target].name, outcome=outcome.name.lower(),
                       success=outcome == trial_lib.Outcome.SUCCESS)
         before = scene.present.copy()
+        t0 = time.perf_counter()
         if record["success"]:
             scene = scene_lib.remove_object(scene, target)
         else:  # the objects stay where the failed grasp left them (knocked over, dropped)
@@ -264,6 +266,7 @@ def run_scene(
             record["contacts"] = {**touched, "objects": {str(k): v for k, v in touched["objects"].items()}}
             failed.append(pose)
             scene = scene_lib.after_trial(scene, result.final_qpos[0])
+        record["settle_s"] = time.perf_counter() - t0
         fell_out += [int(i) for i in np.flatnonzero(before & ~scene.present) if i != target or not record["success"]]
     if first is None:  # nothing on the table after settling: still keep a picture of the empty scene
         first = camera_lib.observe(scene, config.camera, seed=s_seed)

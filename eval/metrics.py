@@ -101,3 +101,28 @@ def timing_summary(logs: Iterable[Mapping]) -> dict[str, tuple[float, float, int
         arr = np.asarray(v, np.float64)
         out[key] = (float(arr.mean()), float(arr.std()), len(arr)) if len(arr) else (float("nan"), float("nan"), 0)
     return out
+
+
+HARNESS_KEYS = ("observe_s", "trial_s", "settle_s")
+
+
+def harness_summary(logs: Iterable[Mapping]) -> dict[str, tuple[float, int]]:
+    """What the benchmark itself costs beside planning: mean seconds per attempt of observing
+    (rendering the depth camera), the grasp trial and re-settling the scene after it, and of the plan
+    call (compilation included: what a run costs), with how many attempts had each; and the mean wall
+    seconds per scene ("scene_s", n = scenes). Keys a log lacks (older logs: "settle_s") are skipped.
+
+    -> {"observe_s": (mean, n), "trial_s", "settle_s", "plan_s", "scene_s"}; (nan, 0) where none.
+    """
+    values: dict[str, list[float]] = {k: [] for k in (*HARNESS_KEYS, "plan_s", "scene_s")}
+    for log in logs:
+        if log.get("wall_s") is not None:
+            values["scene_s"].append(float(log["wall_s"]))
+        for attempt in log["attempts"]:
+            for key in HARNESS_KEYS:
+                if attempt.get(key) is not None and (key == "observe_s" or attempt.get("target") is not None):
+                    values[key].append(float(attempt[key]))
+            total = (attempt.get("timing") or {}).get("total_s")
+            if total is not None:
+                values["plan_s"].append(float(total))
+    return {k: (float(np.mean(v)), len(v)) if v else (float("nan"), 0) for k, v in values.items()}

@@ -125,6 +125,20 @@ def test_timing_summary_is_per_executed_grasp():
     assert n == 1 and mean == pytest.approx(0.2)
 
 
+def test_harness_costs_are_means_per_attempt_and_scene():
+    a, b = log(3, "sf", wall_s=10.0, method="gpd"), log(2, "f", wall_s=4.0, method="gpd")
+    for attempt, (observe, trial, settle) in zip(a["attempts"] + b["attempts"], [(0.1, 0.3, 0.5), (0.2, 0.5, 0.7), (0.3, 0.0, None)]):
+        attempt.update(observe_s=observe, trial_s=trial, target=None if settle is None else 0)
+        if settle is not None:
+            attempt["settle_s"] = settle
+    h = metrics.harness_summary([a, b])
+    assert h["observe_s"] == pytest.approx((0.2, 3)) and h["trial_s"] == pytest.approx((0.4, 2))  # simulated only
+    assert h["settle_s"] == pytest.approx((0.6, 2)) and h["scene_s"] == pytest.approx((7.0, 2))
+    assert h["plan_s"] == pytest.approx(((0.2 + 0.4 + 0.4) / 3, 3))
+    assert np.isnan(metrics.harness_summary([log(1, "")])["trial_s"][0])
+    assert "| gpd | 0.200 | 0.333 | 0.400 | 0.600 | 7.0 | 3 |" in report.harness_markdown([a, b])
+
+
 def test_tables_follow_table_i_and_table_iii():
     logs = [
         log(10, "ssff", method="gpd", setting="seen-10", seed=0),
@@ -163,6 +177,7 @@ def test_oracle_clears_the_tiny_scene_and_the_log_follows_the_rules(oracle_run):
         assert set(a["timing"]) >= set(metrics.TIMING_KEYS)
         assert np.asarray(a["pose"]).shape == (4, 4) and 0 < a["width"] <= 0.08
         assert a["points_in_gripper"][str(a["target"])] == max(a["points_in_gripper"].values())
+        assert a["settle_s"] > 0 and a["trial_s"] > 0 and a["observe_s"] > 0
     json.dumps(log_)  # JSON-able
 
 
