@@ -133,6 +133,20 @@ def test_camera_cloud_lies_on_the_object_surfaces(scene):
     np.testing.assert_allclose(local[:, 2], obs.depth[obs.depth > 0], rtol=1e-5)
 
 
+def test_rays_cast_in_parts_on_threads_hit_what_one_call_hits(scene, monkeypatch):
+    from envs import raycast
+
+    monkeypatch.setattr(raycast, "_MIN_RAYS_PER_THREAD", 1000)
+    observations = {}
+    for threads in (1, 3):
+        monkeypatch.setattr(raycast, "RAY_THREADS", threads)
+        observations[threads] = camera.observe(scene)  # 640 x 480 rays
+    assert (observations[1].labels >= 0).sum() > 1000  # objects are in view
+    np.testing.assert_array_equal(observations[3].depth, observations[1].depth)
+    np.testing.assert_array_equal(observations[3].labels, observations[1].labels)
+    np.testing.assert_array_equal(observations[3].points, observations[1].points)
+
+
 def test_depth_noise_is_seeded_and_moves_points_along_rays(scene):
     config = camera.CameraConfig(width=160, height=120)
     exact = camera.observe(scene, config)
