@@ -509,7 +509,7 @@ class Planner:
             return None
         stage_cfg = dataclasses.replace(cfg.stage1, filter=cfg.fallback_filter)
         if stage_cfg not in self._fallback_stages:
-            self._fallback_stages[stage_cfg] = Stage1(self.stage1.db, stage_cfg)
+            self._fallback_stages[stage_cfg] = Stage1(self.stage1.db, stage_cfg, share=self.stage1)
         return self._fallback_stages[stage_cfg]
 
     def _run_with(self, stage1: Stage1, scene, objects, skipped, view, seed, start, avoid) -> Plan:

@@ -338,6 +338,7 @@ def test_fallback_filter_plans_again_only_when_nothing_was_found(small_db, scene
     rescued = Planner(strong, small_db, dataclasses.replace(CONFIG, stage1=starved, fallback_filter=FilterConfig()))
     plan = rescued.plan(*scene, viewpoint=CAMERA)
     assert plan.ok and plan.fallback and plan.to_dict()["fallback"]
+    assert rescued._fallback_stage().match_db is rescued.stage1.match_db  # one device copy of the database
     np.testing.assert_array_equal(plan.pose, plain.pose)
     assert plan.n_candidates == plain.n_candidates > 0
     # No fallback needed: the first plan stands (the starving filter as fallback is never run).

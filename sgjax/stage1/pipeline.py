@@ -220,13 +220,20 @@ def _pipeline(obj, obj_mask, scene, scene_mask, viewpoint, plane, scale, neighbo
 
 
 class Stage1:
-    """Stage 1 with its database on the device. Call it on one object, or `batch` on many."""
+    """Stage 1 with its database on the device. Call it on one object, or `batch` on many.
 
-    def __init__(self, db: PrimitiveDB | None = None, config: Stage1Config = Stage1Config()):
+    share: another Stage1 on the same database whose matching coefficients (`match_db`, a device copy
+    of the database) this one reuses when both have the same `config.match`, e.g. a second Stage 1
+    that differs only in its filters."""
+
+    def __init__(self, db: PrimitiveDB | None = None, config: Stage1Config = Stage1Config(), share: Stage1 | None = None):
         enable_compilation_cache()
         self.db = load_database(DBConfig()) if db is None else db
         self.config = config
-        self.match_db = MatchDB.from_db(self.db, config.match)
+        if share is not None and share.db is self.db and share.config.match == config.match:
+            self.match_db = share.match_db
+        else:
+            self.match_db = MatchDB.from_db(self.db, config.match)
 
     def off_table(self, points: np.ndarray, plane) -> np.ndarray:
         """Which of points [N, 3] can be obstacles: bool [N], False within `table_band` above the support
