@@ -14,7 +14,9 @@ A scene log is a mapping with "objects" (int) and "attempts" (a list of mappings
 
 from __future__ import annotations
 
+import collections
 import dataclasses
+import re
 from collections.abc import Iterable, Mapping
 
 import numpy as np
@@ -126,3 +128,28 @@ def harness_summary(logs: Iterable[Mapping]) -> dict[str, tuple[float, int]]:
             if total is not None:
                 values["plan_s"].append(float(total))
     return {k: (float(np.mean(v)), len(v)) if v else (float("nan"), 0) for k, v in values.items()}
+
+
+def why_unfinished(log: Mapping) -> str | None:
+    """Why a scene ended with objects left: None when none are left, "attempt cap", or "no grasp: " and
+    the first clause of the method's reason with its numbers as N (e.g. "no grasp: no candidates",
+    "no grasp: best eval N <= N and best refine N <= N"), so that scenes ending alike count together."""
+    if not log.get("remaining"):
+        return None
+    if log["end"] == "attempt_cap":
+        return "attempt cap"
+    reason = str(log.get("final_reason") or "no reason given").split(":")[0].strip()
+    return "no grasp: " + re.sub(r"\d+(\.\d+)?", "N", reason)
+
+
+def failure_breakdown(logs: Iterable[Mapping]) -> dict[str, collections.Counter]:
+    """Failed attempts by outcome (the phase that failed them) and unfinished scenes by why they ended
+    (`why_unfinished`), with the objects they left: {"failed": Counter, "unfinished": Counter, "left": Counter}."""
+    out = {"failed": collections.Counter(), "unfinished": collections.Counter(), "left": collections.Counter()}
+    for log in logs:
+        out["failed"].update(a["outcome"] for a in log["attempts"] if not a["success"])
+        why = why_unfinished(log)
+        if why is not None:
+            out["unfinished"][why] += 1
+            out["left"][why] += int(log["remaining"])
+    return out

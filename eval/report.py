@@ -193,6 +193,21 @@ def timing_rows(logs: Iterable[Mapping]) -> list[dict]:
     return rows
 
 
+def failures_markdown(logs: Iterable[Mapping]) -> str:
+    """Per (method, setting, seed): failed grasps by outcome, unfinished scenes by why they ended and the
+    objects they left (`metrics.failure_breakdown`)."""
+    lines = ["| Method | Setting | N | failed grasps (by outcome) | unfinished scenes: why (scenes, objects left) |",
+             "|---|---|---|---|---|"]
+    groups = _group(logs)
+    methods, settings = _method_order(k[0] for k in groups), _setting_order(k[1] for k in groups)
+    for key in sorted(groups, key=lambda k: (methods.index(k[0]), settings.index(k[1]), k[2])):
+        b = metrics.failure_breakdown(groups[key])
+        failed = ", ".join(f"{k} {v}" for k, v in b["failed"].most_common()) or "–"
+        ends = "; ".join(f"{k} ({v}, {b['left'][k]})" for k, v in b["unfinished"].most_common()) or "–"
+        lines.append(f"| {key[0]} | {key[1]} | {len(groups[key])} | {failed} | {ends} |")
+    return "\n".join(lines)
+
+
 def harness_markdown(logs: Iterable[Mapping]) -> str:
     """Per method: the harness's own seconds per attempt (observe, trial, re-settle) beside the plan
     call's, and the wall seconds per scene (`metrics.harness_summary`)."""
@@ -254,6 +269,10 @@ def write_tables(out: str | os.PathLike, machine: str = "") -> dict[str, Path]:
         "Mean ± std over the executed grasps' plan calls (wall seconds; JIT compilation excluded: a "
         "warm-up call before the first scene, and plan calls that compiled are left out).\n\n"
         f"{table_iii_markdown(times)}\n\n"
+        "## Failures\n\n"
+        "Failed grasps by the phase that failed them, and the scenes that ended with objects left, by "
+        "why (the attempt cap, or the method's reason for finding no grasp, numbers as N).\n\n"
+        f"{failures_markdown(logs)}\n\n"
         "## What a run costs\n\n"
         "Mean wall seconds per attempt of the harness's own steps (rendering the observation, the grasp "
         "trial, re-settling the scene after it; trial and re-settle over simulated attempts) beside the "

@@ -139,6 +139,28 @@ def test_harness_costs_are_means_per_attempt_and_scene():
     assert "| gpd | 0.200 | 0.333 | 0.400 | 0.600 | 7.0 | 3 |" in report.harness_markdown([a, b])
 
 
+def test_failures_are_counted_by_phase_and_by_why_scenes_ended():
+    cap = log(3, "ff", method="gpd", setting="seen-10", seed=0, end="attempt_cap", remaining=3)
+    stage1 = log(3, "sf", method="gpd", setting="seen-10", seed=0, end="no_grasp", remaining=2,
+                 final_reason="no candidates: object 2: all 810 transferred candidates were removed")
+    stage2 = log(4, "s", method="gpd", setting="seen-10", seed=0, end="no_grasp", remaining=3,
+                 final_reason="best eval 0.52 <= 0.7 and best refine 0.24 <= 0.7")
+    other = log(4, "s", method="gpd", setting="seen-10", seed=0, end="no_grasp", remaining=3,
+                final_reason="best eval 0.1 <= 0.7 and best refine 0.43 <= 0.7")
+    clear = log(1, "s", method="gpd", setting="seen-10", seed=0, end="cleared", remaining=0)
+    for one, outcome in zip(cap["attempts"] + stage1["attempts"][1:], ["collision_approach", "dropped_lift", "dropped_lift"]):
+        one["outcome"] = outcome
+    b = metrics.failure_breakdown([cap, stage1, stage2, other, clear])
+    assert b["failed"] == {"dropped_lift": 2, "collision_approach": 1}
+    assert b["unfinished"] == {"attempt cap": 1, "no grasp: no candidates": 1,
+                               "no grasp: best eval N <= N and best refine N <= N": 2}
+    assert b["left"]["no grasp: best eval N <= N and best refine N <= N"] == 6 and b["left"]["attempt cap"] == 3
+    assert metrics.why_unfinished(clear) is None
+    table = report.failures_markdown([cap, stage1, stage2, other, clear])
+    assert ("| gpd | seen-10 | 5 | dropped_lift 2, collision_approach 1 | no grasp: best eval N <= N and best refine "
+            "N <= N (2, 6); attempt cap (1, 3); no grasp: no candidates (1, 2) |") in table
+
+
 def test_tables_follow_table_i_and_table_iii():
     logs = [
         log(10, "ssff", method="gpd", setting="seen-10", seed=0),
