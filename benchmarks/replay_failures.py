@@ -59,33 +59,24 @@ def replay_logs(logs: list[dict], other_name: str, out: Path) -> list[ReplayedAt
         text = json.dumps({"scene_index": log["scene_index"], "other": other_name,
                            "attempts": [dataclasses.asdict(a) for a in replayed]})
         atomic_write_text(path, text)
-        # JSON turns object indices into strings: read the saved form back so both paths agree.
-        attempts += [ReplayedAttempt(**a) for a in json.loads(text)["attempts"]]
+        attempts += replayed
         print(f"scene {log['scene_index']}: {len(replayed)} attempts, "
               f"{sum(a.reproduced for a in replayed)} reproduced", flush=True)
     return attempts
 
 
-def _as_int_keys(attempt: ReplayedAttempt) -> ReplayedAttempt:
-    def fix(contacts: dict) -> dict:
-        return {**contacts, "objects": {int(k): v for k, v in contacts.get("objects", {}).items()}} if contacts else {}
-
-    return dataclasses.replace(attempt, contacts=fix(attempt.contacts), other_contacts=fix(attempt.other_contacts))
-
-
 def print_tables(attempts: list[ReplayedAttempt], other_name: str) -> None:
-    attempts = [_as_int_keys(a) for a in attempts]
     simulated = [a for a in attempts if a.outcome != declutter.NO_OBJECT]
     reproduced = [a for a in simulated if a.reproduced]
     print(f"\n{len(attempts)} attempts, {len(simulated)} simulated, {len(reproduced)} reproduced the logged outcome")
     failed = [a for a in reproduced if a.outcome != "success"]
     print("\n| logged outcome | n | what decided it (phase: touched) | what it touched was in the observation |")
     print("|---|---:|---|---|")
-    for outcome, group in sorted(collections.Counter(a.outcome for a in failed).items()):
+    for outcome in sorted({a.outcome for a in failed}):
         rows = [a for a in failed if a.outcome == outcome]
         causes = collections.Counter(
             collision_cause(a) if outcome.startswith("collision") else
-            f"{a.contacts['phase']}: target by {', '.join(sorted(set(a.contacts['objects'].get(a.target, 'nothing').split('+'))))}"
+            f"{a.contacts['phase']}: target by {', '.join(sorted(set(a.contacts['objects'].get(str(a.target), 'nothing').split('+'))))}"
             for a in rows)
         seen = ""
         if outcome.startswith("collision"):

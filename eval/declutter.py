@@ -153,6 +153,13 @@ def _json_info(info: dict) -> dict:
     return out
 
 
+def logged_contacts(scene, result: trial_lib.TrialResult, row: int = 0) -> dict:
+    """What trial `row` touched in the phase that decided it (`envs.trial.what_touched`), as the scene
+    log keeps it: {"phase", "table", "objects" {object index as a string: "finger" | "palm" | "finger+palm"}}."""
+    touched = trial_lib.what_touched(scene, result, row)
+    return {**touched, "objects": {str(k): v for k, v in touched["objects"].items()}}
+
+
 @dataclasses.dataclass
 class SceneRun:
     """One finished scene: its JSON-able log and the first observation (for pictures)."""
@@ -262,8 +269,7 @@ def run_scene(
         if record["success"]:
             scene = scene_lib.remove_object(scene, target)
         else:  # the objects stay where the failed grasp left them (knocked over, dropped)
-            touched = trial_lib.what_touched(scene, result, 0)
-            record["contacts"] = {**touched, "objects": {str(k): v for k, v in touched["objects"].items()}}
+            record["contacts"] = logged_contacts(scene, result)
             failed.append(pose)
             scene = scene_lib.after_trial(scene, result.final_qpos[0])
         record["settle_s"] = time.perf_counter() - t0

@@ -27,7 +27,7 @@ import numpy as np
 from envs import camera as camera_lib
 from envs import scene as scene_lib
 from envs import trial as trial_lib
-from eval.declutter import NO_OBJECT, DeclutterConfig, make_benchmark_scene
+from eval.declutter import NO_OBJECT, DeclutterConfig, logged_contacts, make_benchmark_scene
 from sgjax.geometry.gripper import GripperSpec, hand_boxes, in_box
 
 
@@ -37,8 +37,8 @@ class ReplayedAttempt:
 
     attempt, target (object index or None), logged: the log's attempt index, target and outcome;
     outcome: the replayed outcome (NO_OBJECT when the log had no object between the fingers, not
-        simulated); contacts: what the gripper touched in the deciding phase of a failed trial ({} for
-        a success or no trial);
+        simulated); contacts: what the gripper touched in the deciding phase of a failed trial, in the
+        scene log's form (`eval.declutter.logged_contacts`; {} for a success or no trial);
     com_depth: how far the target's centre of mass lay behind the fingertips once the fingers closed (m,
         along the approach; negative: beyond the fingertips; NaN without a trial): how deep the grasp is;
     seen_neighbour / seen_table: points of the observation the method planned on (other objects than
@@ -76,10 +76,7 @@ def _outcome(result: trial_lib.TrialResult) -> str:
 
 
 def _contacts(scene: scene_lib.Scene, result: trial_lib.TrialResult) -> dict:
-    if result.label[0]:
-        return {}
-    touched = trial_lib.what_touched(scene, result, 0)
-    return {**touched, "objects": {int(k): v for k, v in touched["objects"].items()}}
+    return {} if result.label[0] else logged_contacts(scene, result)
 
 
 def _seen_in_hand(obs, target: int, pose: np.ndarray, width: float, spec: GripperSpec, sweep: float) -> tuple[int, int]:
@@ -151,7 +148,7 @@ def collision_cause(attempt: ReplayedAttempt, other: bool = False) -> str:
     outcome, contacts = (attempt.other_outcome, attempt.other_contacts) if other else (attempt.outcome, attempt.contacts)
     if not outcome.startswith("collision") or not contacts:
         return ""
-    neighbours = {k: v for k, v in contacts["objects"].items() if k != attempt.target}
+    neighbours = {k: v for k, v in contacts["objects"].items() if k != str(attempt.target)}
     parts = sorted({part for v in neighbours.values() for part in v.split("+")})
     if contacts["table"] and neighbours:
         return "table + neighbour"
