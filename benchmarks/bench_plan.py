@@ -201,7 +201,7 @@ def main() -> None:
     parser.add_argument("--objects", type=int, default=5)
     parser.add_argument("--setting", help="decluttering benchmark scenes instead of the synthetic one")
     parser.add_argument("--scenes", default="7", help="with --setting: comma-separated scene indices (seed 0)")
-    parser.add_argument("--batch-sizes", default="4", help="Stage-1 batch sizes, comma-separated (PlannerConfig)")
+    parser.add_argument("--batch-sizes", default="1,2,4", help="Stage-1 batch sizes, comma-separated (PlannerConfig)")
     parser.add_argument("--reference", help="also time this commit's planner on the same scenes")
     parser.add_argument("--rounds", type=int, default=2, help="with --reference: alternating rounds per code")
     parser.add_argument("--worker", help=argparse.SUPPRESS)

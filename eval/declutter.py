@@ -205,6 +205,8 @@ def run_scene(
     viewpoint = np.asarray(config.camera.position, np.float64)
     ground_truth = getattr(method, "uses_ground_truth", False)
     memory = config.remember_failures and takes_avoid(method)
+    if hasattr(method, "begin_scene"):  # a method that keeps state over a scene's plans starts afresh
+        method.begin_scene()
     failed: list[np.ndarray] = []  # poses of this scene's failed attempts (the memory)
     attempts: list[dict] = []
     fell_out: list[int] = []

@@ -10,6 +10,10 @@ failed in this scene. A method does not plan one of them again: it leaves out it
 `near_grasps` calls the same grasp (closing-region centres within 1 cm, hands within 15 deg). A
 method whose `plan` takes no `avoid` runs without the memory.
 
+A method that keeps state over the plans of one scene (the SuperGrasp planner keeps each unchanged
+object's Stage-1 result) defines `begin_scene()`; the harness calls it before a scene's first plan, so
+that a scene's outcomes never depend on the scenes run before it in the same process.
+
 Diagnostic methods that read the simulator's ground truth (`oracle-topdown`) say so with
 `uses_ground_truth = True`; the harness then hands them the scene with `set_scene(scene)` before each
 plan. They validate the harness and never stand in for a method of the paper.

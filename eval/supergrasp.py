@@ -19,6 +19,7 @@ import numpy as np
 
 from eval.protocol import Decision
 from sgjax.geometry.pointcloud import table_plane
+from sgjax.stage1.memory import Stage1Memory
 
 TIMING_KEYS = ("stage1_s", "stage2_s", "total_s")
 
@@ -40,6 +41,14 @@ class PlannerMethod:
         self.config = dataclasses.replace(config, use_refinement=use_refinement)
         self.name = name
         self.planner = Planner(model=model, db=db, config=self.config)
+        # Stage 1 of an object whose cloud has not changed since the scene's last plan is not run again
+        # (`sgjax.stage1.memory`); the harness starts each scene with `begin_scene`.
+        self.memory = Stage1Memory()
+
+    def begin_scene(self) -> None:
+        """A new scene: forget the last one's Stage-1 results (memory None: Stage 1 on every object)."""
+        if self.memory is not None:
+            self.memory.forget()
 
     def full_plan(self, points: np.ndarray, labels: np.ndarray, viewpoint, seed: int = 0, avoid=None):
         """The planner's whole `sgjax.planner.Plan` (candidates and scores included) for an observation
@@ -50,7 +59,7 @@ class PlannerMethod:
             config = self.config if plane is None else dataclasses.replace(self.config, support_plane=plane)
             if config != self.planner.config:
                 self.planner.config = config
-        return self.planner.plan(points, labels, np.asarray(viewpoint, np.float64), seed, avoid)
+        return self.planner.plan(points, labels, np.asarray(viewpoint, np.float64), seed, avoid, self.memory)
 
     def plan(self, points: np.ndarray, labels: np.ndarray, viewpoint, seed: int = 0, avoid=None) -> Decision:
         plan = self.full_plan(points, labels, viewpoint, seed, avoid)
@@ -61,6 +70,8 @@ class PlannerMethod:
             info["refinements_rejected"] = int(plan.refinements_rejected)
         if plan.fallback:
             info["fallback"] = True
+        if plan.reused:
+            info["reused"] = int(plan.reused)
         if plan.pose is None:
             return Decision(None, 0.0, 0.0, plan.reason or "no grasp", timing, info)
         return Decision(np.asarray(plan.pose, np.float64), float(plan.width), float(plan.score), "", timing, info)

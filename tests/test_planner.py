@@ -199,6 +199,38 @@ def test_deterministic_and_never_recompiles(planner, scene, first_plan):
     assert compiled_programs() == sizes
 
 
+def test_memory_reuses_unchanged_objects_and_retests_their_neighbours(planner, scene, first_plan):
+    """With a Stage1Memory, a second plan of the same observation reuses every object's Stage-1 result
+    and gives the same scores; moving one object makes only that one run Stage 1 again; an obstacle put
+    over an unchanged object's grasps removes them (filter (iv) runs again on remembered candidates)."""
+    from sgjax.stage1.memory import Stage1Memory
+
+    points, labels = scene
+    memory = Stage1Memory()
+    plans = [planner.plan(points, labels, viewpoint=CAMERA, seed=0, memory=memory) for _ in range(2)]
+    assert (plans[0].reused, plans[1].reused) == (0, 2) and (memory.computed, memory.reused) == (2, 2)
+    for plan in plans:
+        for key in ("eval_prob", "refine_prob", "object_candidate"):
+            np.testing.assert_array_equal(plan.scores[key], first_plan.scores[key])
+    moved = points.copy()
+    moved[labels == 1] += np.array([0.01, 0.0, 0.0])
+    third = planner.plan(moved, labels, viewpoint=CAMERA, seed=0, memory=memory)
+    assert third.reused == 1 and memory.computed == 3
+    # Clutter (unlabelled points above the table) all around object 0, which has not changed: its
+    # remembered candidates are tested against it, and those it blocks are gone.
+    kept, own = plans[1].candidates[0], points[labels == 0]
+    clutter = np.random.default_rng(0).uniform(own.min(0) - 0.04, own.max(0) + [0.04, 0.04, 0.0], (3000, 3))
+    clutter = clutter[(clutter[:, 2] > 0.01) & (np.min(np.linalg.norm(clutter[:, None] - own[None], axis=-1), 1) > 0.01)]
+    blocked = planner.plan(np.r_[points, clutter], np.r_[labels, np.full(len(clutter), -1)], viewpoint=CAMERA, seed=0,
+                           memory=memory)
+    assert blocked.reused == 1  # object 0; object 1 is back where it was, not where the memory saw it
+    assert len(blocked.candidates[0]) < len(kept) and blocked.candidates[0].counts["collision_scene"] > 0
+    memory.forget()
+    assert not memory.entries and memory.computed == memory.reused == 0
+    with pytest.raises(ValueError, match="reuse_tolerance"):
+        PlannerConfig(reuse_tolerance=-1.0)
+
+
 def test_stage2_batch_sizes_do_not_change_scores(planner, small_db, scene, first_plan):
     assert PlannerConfig().stage2_sizes == (64, 128, 256, 512)
     assert PlannerConfig(max_stage2_candidates=300, stage2_min_slots=100).stage2_sizes == (128, 256, 300)

@@ -34,3 +34,18 @@ def test_voxel_downsample_keeps_the_point_nearest_each_voxel_centre(voxel):
     np.testing.assert_array_equal(pointcloud.voxel_downsample(wide, voxel)[0][:-1], points[expected])
     with pytest.raises(ValueError, match="voxel"):
         pointcloud.voxel_downsample(points, 0.0)
+
+
+def test_same_cloud_passes_a_still_object_and_fails_a_moved_or_uncovered_one():
+    rng = np.random.default_rng(0)
+    cloud = rng.uniform(-0.03, 0.03, (1500, 3))
+    again = cloud + rng.normal(0, 0.0003, cloud.shape)  # a new view of a still object: sensor noise
+    assert pointcloud.same_cloud(cloud, cloud.copy(), 0.0)
+    assert pointcloud.same_cloud(cloud, again, 0.002) and not pointcloud.same_cloud(cloud, again, 0.0)
+    assert not pointcloud.same_cloud(cloud, cloud + [0.004, 0, 0], 0.002)  # nudged 4 mm
+    assert pointcloud.same_cloud(cloud, cloud + [0.001, 0, 0], 0.002)
+    assert not pointcloud.same_cloud(cloud, cloud[:1300], 0.002)  # partly hidden now (13 % fewer points)
+    # As many points, the same centroid, but 200 of them somewhere else (a part hidden, another revealed).
+    other = np.r_[cloud[:1300], cloud[:100] + [0.05, 0, 0], cloud[:100] - [0.05, 0, 0]]
+    assert np.linalg.norm(other.mean(0) - cloud.mean(0)) < 0.002 and not pointcloud.same_cloud(cloud, other, 0.002)
+    assert not pointcloud.same_cloud(cloud, np.zeros((0, 3)), 0.002)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -644,6 +645,13 @@ def test_filter_chunks_give_the_same_candidates(small_db):
     out = map_chunks(lambda v: {"twice": 2 * v, "sum": v[:, None] + x[None]}, 3, x)
     np.testing.assert_array_equal(out["twice"], 2 * np.arange(10.0))
     assert out["sum"].shape == (10, 10)
+    # With `active`, a chunk without an active row is not computed: zeros there, the same values elsewhere.
+    calls = []
+    counted = lambda v: (jax.debug.callback(lambda: calls.append(1)), 2 * v)[1]
+    active = np.array([0, 0, 0, 1, 0, 0, 0, 0, 0, 1], bool)  # chunks [0-2], [3-5], [6-8], [9 + 2 padding]
+    out = jax.jit(lambda v: map_chunks(counted, 3, v, active=active))(x)
+    np.testing.assert_array_equal(out, np.where(np.repeat([0, 1, 0, 1], 3)[:10], 2 * np.arange(10.0), 0.0))
+    assert len(calls) == 2
     with pytest.raises(ValueError, match="chunk"):
         FilterConfig(chunk=0)
 
@@ -675,6 +683,32 @@ def test_chunked_is_batch_over_chunks_and_obstacles_need_no_shape(stage):
         stage.chunked(objects, scenes[:2], CAMERA)
     with pytest.raises(CloudError, match="scene cloud 0: 1 of .* NaN"):
         stage.batch([box], [np.r_[table, [[np.nan, 0, 0]]]])
+
+
+def test_rescene_is_filter_iv_again_on_what_reached_it(stage):
+    """`rescene` on a result computed with some obstacles (or none) gives what `chunked` gives with the
+    new obstacles, without Stage 1's other steps: the same candidates, counts and reasons."""
+    box, _ = single_view(Primitive("cuboid", (0.09, 0.054, 0.027)))
+    can, _ = single_view(Primitive("cylinder", (0.045, 0.045, 0.1)))
+    centre = box.mean(0)
+    rng = np.random.default_rng(1)
+    wall = centre + rng.uniform([-0.12, 0.05, -0.05], [0.12, 0.08, 0.08], (2000, 3))  # beside the box
+    cage = centre + rng.uniform(-0.1, 0.1, (6000, 3))
+    cage = cage[np.min(np.linalg.norm(cage[:, None] - box[None], axis=-1), 1) > 0.01]  # all round, not on it
+    objects, nothing = [box, can, box], np.zeros((0, 3))
+    before = stage.chunked(objects, [nothing, wall, nothing], CAMERA, seed=2, sizes=(2,))
+    for after in ([wall, nothing, cage], [nothing, nothing, nothing]):
+        want = stage.chunked(objects, after, CAMERA, seed=2, sizes=(2,))
+        got = stage.rescene(before, objects, after, CAMERA, seed=2, sizes=(2,))
+        for g, w in zip(got, want):
+            assert g.counts == w.counts and g.reason == w.reason
+            np.testing.assert_array_equal(g.template_id, w.template_id)
+            np.testing.assert_allclose(g.poses, w.poses, atol=1e-6)
+    assert want[0].counts["collision_scene"] == 0 and len(want[0]) == len(before[0])
+    blocked = stage.rescene(before, objects, [wall, nothing, cage], CAMERA, seed=2, sizes=(2,))
+    assert 0 < blocked[0].counts["collision_scene"] and len(blocked[2]) == 0 and "collide with the scene" in blocked[2].reason
+    with pytest.raises(ValueError, match="before_scene"):
+        stage.rescene([dataclasses.replace(before[0], before_scene=None)], [box], [None], CAMERA)
 
 
 def test_empty_result_explains_which_filter_removed_what(stage):

@@ -273,3 +273,26 @@ def table_plane(points: np.ndarray, labels: np.ndarray) -> tuple[float, float, f
         return None
     z = float(np.median(np.asarray(points)[table, 2]))
     return (0.0, 0.0, 1.0, -z)
+
+
+def same_cloud(a: np.ndarray, b: np.ndarray, tolerance: float) -> bool:
+    """Whether clouds a [N, 3] and b [M, 3] show the same surface within `tolerance` (metres): point
+    counts within 5 % of each other, centroids within tolerance, and 95 % of each cloud's points within
+    tolerance of the other's (so a new view of a still object passes and a nudged one, or one partly
+    hidden or revealed, does not). tolerance <= 0: only equal arrays pass."""
+    from scipy.spatial import cKDTree
+
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    if a.shape == b.shape and np.array_equal(a, b):
+        return True
+    if tolerance <= 0.0:
+        return False
+    if not len(a) or not len(b) or abs(len(a) - len(b)) > 0.05 * max(len(a), len(b)):
+        return False
+    if np.linalg.norm(a.mean(0) - b.mean(0)) > tolerance:
+        return False
+    for x, y in ((a, b), (b, a)):
+        near = cKDTree(y).query(x, distance_upper_bound=tolerance)[0] <= tolerance
+        if near.mean() < 0.95:
+            return False
+    return True

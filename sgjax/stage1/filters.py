@@ -98,10 +98,14 @@ class FilterConfig:
             raise ValueError(f"chunk must be >= 1 or None, got {self.chunk}")
 
 
-def map_chunks(fn, chunk: int | None, *xs):
+def map_chunks(fn, chunk: int | None, *xs, active=None):
     """fn(*xs) computed over the leading axis [M] of every x in chunks of `chunk` rows (`jax.lax.map`):
     the same values, row for row, up to float rounding (fn must treat its rows independently); the last chunk is padded
-    with copies of row 0, whose results are dropped. chunk None or >= M: one call."""
+    with copies of row 0, whose results are dropped. chunk None or >= M: one call.
+
+    active: None or bool [M]. A chunk with no active row is not computed (`jax.lax.cond`): its rows
+    come back as zeros (False), so only rows that are active may be read from the result. This saves
+    the work only where the call is not under `jax.vmap` (which turns the cond into a select)."""
     m = xs[0].shape[0]
     if chunk is None or m <= chunk:
         return fn(*xs)
@@ -112,7 +116,14 @@ def map_chunks(fn, chunk: int | None, *xs):
             x = jnp.concatenate([x, jnp.repeat(x[:1], pad, 0)], 0)
         return x.reshape((-1, chunk) + x.shape[1:])
 
-    out = jax.lax.map(lambda part: fn(*part), tuple(split(x) for x in xs))
+    parts = tuple(split(x) for x in xs)
+    if active is None:
+        out = jax.lax.map(lambda part: fn(*part), parts)
+    else:
+        shapes = jax.eval_shape(fn, *(p[0] for p in parts))
+        skipped = lambda part: jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
+        run = lambda args: jax.lax.cond(jnp.any(args[0]), lambda part: fn(*part), skipped, args[1])
+        out = jax.lax.map(run, (split(jnp.asarray(active, bool)), parts))
     return jax.tree.map(lambda y: y.reshape((-1,) + y.shape[2:])[:m], out)
 
 
@@ -308,11 +319,20 @@ def _scene_test(poses, widths, passed, scene_points, scene_mask, spec: GripperSp
     m = poses.shape[0]
     slots = m if cfg.scene_slots is None else min(cfg.scene_slots, m)
     order = jnp.argsort(~passed, stable=True)[:slots]  # passed first, in match order
-    collide = lambda p, w: _scene_collisions(p, w, scene_points, scene_mask, spec, cfg, viewpoint)
-    hit = map_chunks(collide, cfg.chunk, poses[order], widths[order])
+    hit = scene_collisions(poses[order], widths[order], passed[order], scene_points, scene_mask, spec, cfg, viewpoint)
     tested = jnp.zeros(m, bool).at[order].set(passed[order])
     collision = jnp.zeros(m, bool).at[order].set(hit & passed[order])
     return collision, passed & ~tested
+
+
+def scene_collisions(poses, widths, active, scene_points, scene_mask, spec: GripperSpec = GripperSpec(),
+                     cfg: FilterConfig = FilterConfig(), viewpoint=None) -> jax.Array:
+    """Filter (iv) on the active rows: poses [K, 4, 4], widths [K], active bool [K], scene_points [S, 3]
+    (obstacles), scene_mask [S], viewpoint [3] or None -> bool [K], True where an active candidate's hand
+    meets an obstacle (or the space it hides); False on inactive rows. In chunks of `cfg.chunk` rows, of
+    which those without an active row are skipped: put the active rows first (outside `jax.vmap`)."""
+    collide = lambda p, w: _scene_collisions(p, w, scene_points, scene_mask, spec, cfg, viewpoint)
+    return map_chunks(collide, cfg.chunk, poses, widths, active=active) & active
 
 
 def _scene_collisions(poses, widths, scene_points, scene_mask, spec: GripperSpec, cfg: FilterConfig, viewpoint):

@@ -33,6 +33,7 @@ from sgjax.stage1.filters import (
     map_chunks,
     pose_collisions,
     removal_counts,
+    scene_collisions,
     scene_filter,
 )
 from sgjax.stage1.ems import EMSConfig, FitResult, _fit_one
@@ -99,6 +100,9 @@ class Candidates:
     superquadric: FitResult | None
     counts: dict
     reason: str | None = None
+    # The candidates that reached filter (iv) (passed the rest, within its slots), kept or not, as arrays
+    # named like the fields above: `Stage1.rescene` tests them against other obstacles without Stage 1.
+    before_scene: dict | None = None
 
     def __len__(self) -> int:
         return len(self.widths)
@@ -130,9 +134,26 @@ class Candidates:
         return json.dumps(self.to_dict(top))
 
 
-def _empty(counts: dict, reason: str, fit: FitResult | None) -> Candidates:
+def _empty(counts: dict, reason: str, fit: FitResult | None, before_scene: dict | None = None) -> Candidates:
     z = np.zeros(0)
-    return Candidates(np.zeros((0, 4, 4)), z, z.astype(int), z.astype(int), z.astype(int), z, z.astype(int), fit, counts, reason)
+    return Candidates(np.zeros((0, 4, 4)), z, z.astype(int), z.astype(int), z.astype(int), z, z.astype(int), fit, counts, reason,
+                      before_scene)
+
+
+def _selected(arrays: dict, rows: np.ndarray, fit: FitResult, counts: dict, before_scene: dict | None) -> Candidates:
+    """Candidates from named arrays (the Candidates fields, float64 poses / widths / scores) at rows."""
+    return Candidates(
+        poses=arrays["poses"][rows].astype(np.float64),
+        widths=arrays["widths"][rows].astype(np.float64),
+        primitive_id=arrays["primitive_id"][rows],
+        template_id=arrays["template_id"][rows],
+        match_rank=arrays["match_rank"][rows],
+        match_score=arrays["match_score"][rows].astype(np.float64),
+        points_between=arrays["points_between"][rows],
+        superquadric=fit,
+        counts=counts,
+        before_scene=before_scene,
+    )
 
 
 def _reason(counts: dict, cfg: Stage1Config) -> str:
@@ -184,9 +205,7 @@ def _pipeline(obj, obj_mask, scene, scene_mask, viewpoint, plane, scale, neighbo
         poses = jax.vmap(lift)(poses, widths, plane)
     normals = estimate_normals(obj, obj_mask, viewpoint, neighbours=neighbours)
 
-    def one(p, w, v, o, om, nrm, s, sm, pl, sc, sq, view):
-        view = view if has_view else None
-
+    def one(p, w, v, o, om, nrm, pl, sc, sq):
         def part(pc, wc, vc):  # a chunk of candidates: the tests over candidate x object point pairs
             local = to_gripper_frame(o, pc)  # [m, N, 3]: shared by the adaptation and the filters
             if cfg.adapt_width:
@@ -198,13 +217,16 @@ def _pipeline(obj, obj_mask, scene, scene_mask, viewpoint, plane, scale, neighbo
                                    superquadric=sq)
             return pc, wc, tested
 
-        p, w, tested = map_chunks(part, cfg.filter.chunk, p, w, v)
-        if has_scene:  # (iv) last, on the candidates that passed the rest
-            tested = scene_filter(tested, p, w, s, sm, cfg.spec, cfg.filter, view)
-        return p, w, tested
+        return map_chunks(part, cfg.filter.chunk, p, w, v)
 
-    poses, widths, filt = jax.vmap(one)(poses, widths, valid, obj, obj_mask, normals, scene, scene_mask, plane, scale,
-                                        fit.superquadric, viewpoint)
+    poses, widths, filt = jax.vmap(one)(poses, widths, valid, obj, obj_mask, normals, plane, scale, fit.superquadric)
+    if has_scene:  # (iv) last, on the candidates that passed the rest
+        # Object by object (`lax.map`, not vmap), so that its chunks of slots no candidate reached are skipped.
+        def with_scene(args):
+            f, p, w, s, sm, view = args
+            return scene_filter(f, p, w, s, sm, cfg.spec, cfg.filter, view if has_view else None)
+
+        filt = jax.lax.map(with_scene, (filt, poses, widths, scene, scene_mask, viewpoint))
     return {
         "fit": fit,
         "poses": poses,
@@ -315,23 +337,72 @@ class Stage1:
         objects: sequence of clouds [N_i, 3]; scenes: a sequence of the same length (items None or
         [S_i, 3]); viewpoint [3] (shared); seed, support_plane as in `batch`.
         """
-        sizes = sorted({int(b) for b in sizes})
-        if not sizes or sizes[0] < 1:
-            raise ValueError(f"batch sizes must be positive integers, got {sizes}")
         if len(scenes) != len(objects):
             raise ValueError(f"got {len(objects)} object clouds but {len(scenes)} scene clouds")
         view = np.asarray(viewpoint, np.float64).reshape(3)
         out: list[Candidates] = []
-        begin = 0
-        while begin < len(objects):
-            left = len(objects) - begin
-            size = max((b for b in sizes if b <= left), default=sizes[0])
-            part = list(objects[begin : begin + size])
-            pad = size - len(part)
-            result = self.batch(part + [np.zeros((1, 3))] * pad, list(scenes[begin : begin + size]) + [None] * pad,
-                                np.tile(view, (size, 1)), seed + begin, support_plane)
-            out.extend(result[: len(part)])
-            begin += len(part)
+        for begin, size, count in _chunks(len(objects), sizes):
+            pad = size - count
+            result = self.batch(list(objects[begin : begin + count]) + [np.zeros((1, 3))] * pad,
+                                list(scenes[begin : begin + count]) + [None] * pad, np.tile(view, (size, 1)),
+                                seed + begin, support_plane)
+            out.extend(result[:count])
+        return out
+
+    def rescene(self, previous: list[Candidates], objects, scenes, viewpoint, seed: int = 0, support_plane=None,
+                sizes=(4,)) -> list[Candidates]:
+        """Filter (iv) again, on other obstacles, for objects Stage 1 has already seen: the candidates of
+        each `previous` result that reached (iv) (`Candidates.before_scene`) are tested against the obstacle
+        crop of its scene, as `chunked` would crop it, with nothing else recomputed (no fit, no matching,
+        no other filter). For an object whose cloud has not changed since, e.g. while a neighbour was
+        grasped: `Stage1Memory` decides that.
+
+        previous: Candidates with before_scene; objects: their clouds now [N_i, 3] (the crop leaves them
+        out); scenes: obstacles now (items None or [S_i, 3]; None and empty alike: nothing to meet);
+        viewpoint [3]; seed, support_plane, sizes as in `chunked` -> one Candidates per object, its counts
+        updated with the new (iv): what `chunked` gives with these obstacles (given as arrays, so that
+        (iv) and its `scene_slots` apply), from the same object clouds and seed.
+        """
+        cfg = self.config
+        if not (len(previous) == len(objects) == len(scenes)):
+            raise ValueError(f"got {len(previous)} previous results, {len(objects)} object and {len(scenes)} scene clouds")
+        if any(p.before_scene is None for p in previous):
+            raise ValueError("rescene needs results of Stage1.batch / chunked (Candidates.before_scene)")
+        slots = cfg.max_candidates if cfg.filter.scene_slots is None else min(cfg.filter.scene_slots, cfg.max_candidates)
+        view = np.asarray(viewpoint, np.float32).reshape(3)
+        out: list[Candidates] = []
+        for begin, size, count in _chunks(len(objects), sizes):
+            poses = np.tile(np.eye(4, dtype=np.float32), (size, slots, 1, 1))
+            widths = np.zeros((size, slots), np.float32)
+            active = np.zeros((size, slots), bool)
+            scene = np.zeros((size, cfg.max_scene_points, 3), np.float32)
+            scene_mask = np.zeros(scene.shape[:2], bool)
+            plane = _planes(support_plane, size)
+            for i in range(count):
+                before = previous[begin + i].before_scene
+                k = min(len(before["widths"]), slots)  # more only from a run without obstacles
+                poses[i, :k], widths[i, :k], active[i, :k] = before["poses"][:k], before["widths"][:k], True
+                s = scenes[begin + i]
+                s = None if s is None else pointcloud.as_points(s, f"scene cloud {begin + i}")
+                if s is not None and len(s):
+                    cloud = pointcloud.as_cloud(objects[begin + i], f"object cloud {begin + i}")
+                    scene[i], scene_mask[i] = self._crop_scene(s, cloud, seed + begin + i, plane[i])
+            has_view = viewpoint is not None
+            hit = exported.call("stage1_rescene", functools.partial(_rescene, cfg=cfg, has_view=has_view),
+                                (poses, widths, active, scene, scene_mask, np.tile(view, (size, 1))),
+                                (cfg.spec, cfg.filter, has_view))
+            hit = np.asarray(hit)
+            for i in range(count):
+                prev = previous[begin + i]
+                reached = len(prev.before_scene["widths"])
+                collided = hit[i, : min(reached, slots)]
+                counts = dict(prev.counts, collision_scene=int(collided.sum()), kept=int(len(collided) - collided.sum()),
+                              scene_untested=prev.counts.get("scene_untested", 0) + max(0, reached - slots))
+                if not counts["kept"]:
+                    out.append(_empty(counts, _reason(counts, cfg), prev.superquadric, prev.before_scene))
+                else:
+                    out.append(_selected(prev.before_scene, np.flatnonzero(~collided), prev.superquadric, counts,
+                                         prev.before_scene))
         return out
 
     def collisions(self, object_points, scene_points, poses, widths, viewpoint=None, seed: int = 0,
@@ -390,26 +461,46 @@ class Stage1:
         filt = jax.tree_util.tree_map(lambda x: x[i], out["filter"])
         counts = removal_counts(filt, out["valid"][i])
         counts["truncated"] = int(out["total_valid"][i]) - counts["transferred"]
-        keep = filt.keep
-        if not keep.any():
-            return _empty(counts, _reason(counts, self.config), fit)
-        return Candidates(
-            poses=out["poses"][i][keep].astype(np.float64),
-            widths=out["widths"][i][keep].astype(np.float64),
-            primitive_id=out["primitive_id"][i][keep],
-            template_id=out["template_id"][i][keep],
-            match_rank=out["match_rank"][i][keep],
-            match_score=out["match_score"][i][keep].astype(np.float64),
-            points_between=filt.points_between[keep],
-            superquadric=fit,
-            counts=counts,
-        )
+        arrays = {name: out[name][i] for name in ("poses", "widths", "primitive_id", "template_id", "match_rank",
+                                                   "match_score")}
+        arrays["points_between"] = filt.points_between
+        reached = np.flatnonzero(filt.keep | filt.collision_scene)  # in match order, as (iv) tested them
+        before_scene = {name: value[reached] for name, value in arrays.items()}
+        if not filt.keep.any():
+            return _empty(counts, _reason(counts, self.config), fit, before_scene)
+        return _selected(arrays, np.flatnonzero(filt.keep), fit, counts, before_scene)
 
     def __call__(self, object_points, scene_points=None, viewpoint=None, seed: int = 0, support_plane=None) -> Candidates:
         """Candidates for one object cloud [N, 3]; raises CloudError naming the problem for bad input."""
         cloud = pointcloud.as_cloud(object_points, "object cloud")  # raises for empty/NaN/too few/flat clouds
         views = None if viewpoint is None else np.asarray(viewpoint, np.float32)[None]
         return self.batch([cloud], None if scene_points is None else [scene_points], views, seed, support_plane)[0]
+
+
+def _chunks(n: int, sizes) -> list[tuple[int, int, int]]:
+    """How `Stage1.chunked` splits n objects over batch sizes: (begin, size, count) per batch. Each takes
+    the largest size that fits the objects left, and the smallest size (padded) when none fits."""
+    sizes = sorted({int(b) for b in sizes})
+    if not sizes or sizes[0] < 1:
+        raise ValueError(f"batch sizes must be positive integers, got {sizes}")
+    out, begin = [], 0
+    while begin < n:
+        size = max((b for b in sizes if b <= n - begin), default=sizes[0])
+        count = min(size, n - begin)
+        out.append((begin, size, count))
+        begin += count
+    return out
+
+
+def _rescene(poses, widths, active, scene, scene_mask, viewpoint, cfg: Stage1Config, has_view: bool):
+    """Filter (iv) over B objects' candidates: poses [B, T, 4, 4], widths [B, T], active [B, T], scene [B, S, 3],
+    scene_mask [B, S], viewpoint [B, 3] -> collision bool [B, T]. Object by object (`lax.map`), so that
+    the chunks of inactive slots are skipped."""
+    def one(args):
+        p, w, a, s, sm, v = args
+        return scene_collisions(p, w, a, s, sm, cfg.spec, cfg.filter, v if has_view else None)
+
+    return jax.lax.map(one, (poses, widths, active, scene, scene_mask, viewpoint))
 
 
 def knn_indices(points: np.ndarray, mask: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
