@@ -436,16 +436,24 @@ class Planner:
         labels = _labels(labels, len(scene))
         view, avoid = _viewpoint(viewpoint), _avoid(avoid)
         ids, counts = np.unique(labels[labels >= 0], return_counts=True)
+        # Each object's points in scene order, from one stable sort rather than a pass per object.
+        by_label = np.argsort(labels, kind="stable")[int(np.sum(labels < 0)):]
+        rows = dict(zip(ids.tolist(), np.split(by_label, np.cumsum(counts)[:-1])))
         # The table is filter (v)'s: dropping its points once here saves each object's crop a pass over them.
         free = self.stage1.off_table(scene, self.config.support_plane)
         obstacles, obstacle_labels = scene[free], labels[free]
+        margin = self.stage1.config.scene_margin
         objects, skipped = [], []
         for label, count in zip(ids.tolist(), counts.tolist()):
             if count < self.config.min_object_points:
                 skipped.append({"label": label, "points": count, "candidates": 0,
                                 "reason": f"{count} visible points < min_object_points {self.config.min_object_points}"})
             else:
-                objects.append((label, scene[labels == label], obstacles[obstacle_labels != label]))  # the rest
+                cloud = scene[rows[label]]
+                # The rest of the scene within Stage 1's crop box (`Stage1._crop_scene` keeps no other points,
+                # in the same order): one pass here instead of a copy of the whole scene per object.
+                near = np.all((obstacles >= cloud.min(0) - margin) & (obstacles <= cloud.max(0) + margin), axis=1)
+                objects.append((label, cloud, obstacles[near & (obstacle_labels != label)]))
         if not objects:
             if len(ids) == 0:
                 reason = "no object points: every label is < 0 (table/background)"

@@ -274,7 +274,12 @@ class Stage1:
         near = scene[np.all((scene >= lo) & (scene <= hi), axis=1)]
         near = near[_off_table(near, plane, cfg.table_band)]
         if len(near):
-            own = cKDTree(obj).query(near, distance_upper_bound=cfg.target_exclusion)[0] <= cfg.target_exclusion
+            # Only points in the object's own box (grown by the exclusion radius) can be that close to it.
+            ex = cfg.target_exclusion
+            close = np.flatnonzero(np.all((near >= obj.min(0) - ex) & (near <= obj.max(0) + ex), axis=1))
+            own = np.zeros(len(near), bool)
+            if len(close):
+                own[close] = cKDTree(obj).query(near[close], distance_upper_bound=ex)[0] <= ex
             near = near[~own]
         near = pointcloud.downsample(near, cfg.max_scene_points, seed) if len(near) else near
         out = np.zeros((cfg.max_scene_points, 3), np.float32)
