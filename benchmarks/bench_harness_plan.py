@@ -52,7 +52,7 @@ def worker(setting: str, scenes: list[int], method_name: str, out_path: str) -> 
     rows, scenes_out = [], []
     for index in scenes:
         log = run_scene(method, objects, s.n_objects, 0, index, setting=setting).log
-        scenes_out.append({"index": index, "objects": len(log["objects"]), "remaining": log["remaining"]})
+        scenes_out.append({"index": index, "objects": int(log["objects"]), "remaining": log["remaining"]})
         for a in log["attempts"]:
             rows.append({"scene": index, "success": a["success"], "compiled": bool(a["info"].get("compiled")),
                          "reused": int(a["info"].get("reused", 0)), **{k: a["timing"][k] for k in KEYS}})

@@ -119,7 +119,11 @@ class PlannerConfig:
     reuse_tolerance: with a `Stage1Memory` passed to `plan`, an object whose cloud is the same as when
         Stage 1 last ran on it, within this many metres (`pointcloud.same_cloud`), keeps those candidates
         and is only tested against the obstacles of now (`Stage1.rescene`). 0: only identical clouds.
-        Without a memory, Stage 1 runs afresh on every object.
+        Without a memory, Stage 1 runs afresh on every object. Default 0.5 mm: between two attempts of a
+        decluttering scene an untouched object's cloud moves by a median 0.14 mm (re-settling), a nudged
+        one by millimetres; on seen-10 (N = 30) 0.5 mm kept GSR / TSR at those of no memory (97.0 / 98.3
+        against 97.4 / 99.0) with 3.8 objects per plan from memory, while 2 mm let stale grasps of nudged
+        objects through (94.2 / 97.7). A real camera's noise is larger: set it to the noise level there.
     """
 
     stage1: Stage1Config = dataclasses.field(default_factory=Stage1Config)
@@ -135,7 +139,7 @@ class PlannerConfig:
     avoid_distance: float = gripper.AVOID_DISTANCE
     avoid_angle_deg: float = gripper.AVOID_ANGLE_DEG
     fallback_filter: FilterConfig | None = FALLBACK_FILTER
-    reuse_tolerance: float = 0.002
+    reuse_tolerance: float = 0.0005
 
     def __post_init__(self):
         object.__setattr__(self, "stage1_batch_sizes", tuple(sorted({int(b) for b in self.stage1_batch_sizes})))
