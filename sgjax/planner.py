@@ -27,12 +27,13 @@ Fixed shapes, so repeated plans never recompile: Stage 2 scores the candidates i
 power-of-two batches that holds them (`stage2_min_slots` up to `max_stage2_candidates`, padded and
 masked; the first plan compiles every size) on `scene_cloud.max_points` scene points (voxel grid + seeded uniform subsample,
 padded and masked, made as the labelling pipeline makes it: `pointcloud.scene_cloud`). Stage 1 runs
-objects in batches of the sizes in `stage1_batch_sizes` (default 1, 2, 4: 10 objects = 4 + 4 + 2), so at most that many
-Stage-1 shapes are ever compiled. Over the plans of one scene, a `Stage1Memory` passed to `plan` keeps
-each object's Stage-1 result while its cloud does not change: only filter (iv) runs again on it
-(`Stage1.rescene`), and Stage 1 proper runs on the objects that did change, often one or two. When Stage 1 yields more candidates than Stage 2 takes, every
-object keeps its best-matched ones: candidates are taken round-robin over objects in match order
-(rank 0 of every object, then rank 1, ...) up to the budget (`stage2_subset`).
+objects in batches of the sizes in `stage1_batch_sizes` (default 1, 2, 4: 10 objects = 4 + 4 + 2), so
+at most that many Stage-1 shapes are ever compiled. Over the plans of one scene, a `Stage1Memory`
+passed to `plan` keeps each object's Stage-1 result while its cloud does not change: only filter (iv)
+runs again on it (`Stage1.rescene`), and Stage 1 proper runs on the objects that did change, often one
+or two. When Stage 1 yields more candidates than Stage 2 takes, every object keeps its best-matched
+ones: candidates are taken round-robin over objects in match order (rank 0 of every object, then
+rank 1, ...) up to the budget (`stage2_subset`).
 
 Everything is deterministic for a seed. Bad input (wrong shapes, NaN, mismatched labels, an empty
 cloud) raises ValueError naming the problem; a scene in which nothing can be grasped (no object with
@@ -108,8 +109,9 @@ class PlannerConfig:
     stage1_batch_sizes: Stage-1 batch sizes (objects per call): objects run in chunks of the largest
         size that fits those left, the smallest size padded when none fits, so at most one compile per
         size is ever made. Default (1, 2, 4): with a memory, most plans run Stage 1 on one to three
-        changed objects, which a single size 4 would pad to four (measured on seen-10 with the memory:
-        Stage 1 per plan 0.33x of today's). Each size compiles when first used (then cached on disk).
+        changed objects, which a single size 4 would pad to four (docs/stage1.md: with the memory, Stage 1
+        per plan in the harness took 0.38x the time of the code before it). Each size compiles when
+        first used (then cached on disk).
     avoid_distance, avoid_angle_deg: a Stage-1 candidate this close to a pose passed as `avoid` (e.g. a
         grasp that already failed) is left out before Stage 2 (`gripper.near_grasps`).
     fallback_filter: when a plan finds no grasp (Stage 1 keeps no candidate, or E-RNet passes none),
