@@ -286,6 +286,20 @@ class Stage1:
         out[: len(near)] = near
         return out, np.arange(cfg.max_scene_points) < len(near)
 
+    def _crops(self, scenes, clouds, seed: int, plane: np.ndarray, b: int) -> tuple[np.ndarray, np.ndarray]:
+        """The obstacle crops of b batch slots (`_crop_scene`, seed + i for slot i): scenes (items None or
+        [S_i, 3]) and clouds for the first len(scenes) slots, plane [b, 4] -> (scene [b, max_scene_points, 3],
+        mask [b, max_scene_points]); slots without obstacles are all padding."""
+        scene = np.zeros((b, self.config.max_scene_points, 3), np.float32)
+        mask = np.zeros(scene.shape[:2], bool)
+        for i, s in enumerate(scenes):
+            if s is not None:
+                # Obstacles need no shape test (a table alone is flat), only finite points.
+                s = pointcloud.as_points(s, f"scene cloud {i}")
+                if len(s):
+                    scene[i], mask[i] = self._crop_scene(s, clouds[i], seed + i, plane[i])
+        return scene, mask
+
     def batch(self, objects, scenes=None, viewpoints=None, seed: int = 0, support_plane=None) -> list[Candidates]:
         """Candidates for B objects in one compiled call.
 
@@ -310,17 +324,12 @@ class Stage1:
         b = len(clouds)
         plane = _planes(support_plane, b)
         has_scene = scenes is not None and any(s is not None for s in scenes)
-        scene = np.zeros((b, cfg.max_scene_points if has_scene else 1, 3), np.float32)
-        scene_mask = np.zeros(scene.shape[:2], bool)
         if has_scene:
             if len(scenes) != b:
                 raise ValueError(f"got {b} object clouds but {len(scenes)} scene clouds")
-            for i, s in enumerate(scenes):
-                if s is not None:
-                    # Obstacles need no shape test (a table alone is flat), only finite points.
-                    s = pointcloud.as_points(s, f"scene cloud {i}")
-                    if len(s):
-                        scene[i], scene_mask[i] = self._crop_scene(s, clouds[i], seed + i, plane[i])
+            scene, scene_mask = self._crops(scenes, clouds, seed, plane, b)
+        else:
+            scene, scene_mask = np.zeros((b, 1, 3), np.float32), np.zeros((b, 1), bool)
         view = np.zeros((b, 3), np.float32) if viewpoints is None else np.asarray(viewpoints, np.float32).reshape(b, 3)
         # Filter (ii) counts the observed points between the fingers, not the subsample's.
         scale = np.array([len(c) for c in clouds], np.float32) / np.maximum(obj_mask.sum(1), 1)
@@ -374,25 +383,20 @@ class Stage1:
         if any(p.before_scene is None for p in previous):
             raise ValueError("rescene needs results of Stage1.batch / chunked (Candidates.before_scene)")
         slots = cfg.max_candidates if cfg.filter.scene_slots is None else min(cfg.filter.scene_slots, cfg.max_candidates)
-        view = np.asarray(viewpoint, np.float32).reshape(3)
+        has_view = viewpoint is not None
+        view = np.asarray(viewpoint if has_view else np.zeros(3), np.float32).reshape(3)
         out: list[Candidates] = []
         for begin, size, count in _chunks(len(objects), sizes):
             poses = np.tile(np.eye(4, dtype=np.float32), (size, slots, 1, 1))
             widths = np.zeros((size, slots), np.float32)
             active = np.zeros((size, slots), bool)
-            scene = np.zeros((size, cfg.max_scene_points, 3), np.float32)
-            scene_mask = np.zeros(scene.shape[:2], bool)
-            plane = _planes(support_plane, size)
             for i in range(count):
                 before = previous[begin + i].before_scene
                 k = min(len(before["widths"]), slots)  # more only from a run without obstacles
                 poses[i, :k], widths[i, :k], active[i, :k] = before["poses"][:k], before["widths"][:k], True
-                s = scenes[begin + i]
-                s = None if s is None else pointcloud.as_points(s, f"scene cloud {begin + i}")
-                if s is not None and len(s):
-                    cloud = pointcloud.as_cloud(objects[begin + i], f"object cloud {begin + i}")
-                    scene[i], scene_mask[i] = self._crop_scene(s, cloud, seed + begin + i, plane[i])
-            has_view = viewpoint is not None
+            clouds = [pointcloud.as_cloud(o, f"object cloud {i}") for i, o in enumerate(objects[begin : begin + count])]
+            scene, scene_mask = self._crops(scenes[begin : begin + count], clouds, seed + begin, _planes(support_plane, size),
+                                            size)
             hit = exported.call("stage1_rescene", functools.partial(_rescene, cfg=cfg, has_view=has_view),
                                 (poses, widths, active, scene, scene_mask, np.tile(view, (size, 1))),
                                 (cfg.spec, cfg.filter, has_view))
