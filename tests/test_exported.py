@@ -23,7 +23,8 @@ def fn(x, tree):
             "sum": (x * x * scale).sum() + tree["b"].sum()}
 out = exported.call("toy", fn, (jnp.arange(-2.0, 3.0), {"b": np.ones(2, np.float32)}), static=(scale,))
 assert isinstance(out["result"], FilterResult)
-print(json.dumps({"keep": np.asarray(out["result"].keep).tolist(), "sum": float(out["sum"]), **exported.stats}))
+print(json.dumps({"keep": np.asarray(out["result"].keep).tolist(), "sum": float(out["sum"]), "traced": exported.traced_programs(),
+                  **exported.stats}))
 """
 
 
@@ -38,11 +39,12 @@ def test_a_second_process_loads_the_exported_program(tmp_path):
     env.pop("SGJAX_COMPILE_CACHE", None)
     first = _run(env)
     assert first["keep"] == [False, False, False, True, True] and first["sum"] == 2.0 * 10 + 2
-    assert (first["exported"], first["loaded"]) == (1, 0)
+    assert (first["exported"], first["loaded"], first["traced"]) == (1, 0, 1)
     files = sorted(p.name for p in (tmp_path / "exported").iterdir())
     assert len(files) == 1 and files[0].startswith("toy-") and files[0].endswith(".jaxexport")
     second = _run(env)
-    assert (second["exported"], second["loaded"]) == (0, 1) and second["keep"] == first["keep"] and second["sum"] == first["sum"]
+    # A load is not a trace (`traced_programs`: what the planner's never-recompiles test counts).
+    assert (second["exported"], second["loaded"], second["traced"]) == (0, 1, 0) and second["keep"] == first["keep"] and second["sum"] == first["sum"]
     # Another static setting is another program; a damaged file is exported again, not trusted.
     other = _run(env, scale=3.0)
     assert other["exported"] == 1 and other["sum"] == 3.0 * 10 + 2
@@ -55,5 +57,5 @@ def test_a_second_process_loads_the_exported_program(tmp_path):
 def test_off_exports_nothing(tmp_path):
     env = {**os.environ, "SGJAX_CACHE": str(tmp_path), "SGJAX_COMPILE_CACHE": "0"}
     out = _run(env)
-    assert (out["exported"], out["loaded"], out["jitted"]) == (0, 0, 1) and out["sum"] == 2.0 * 10 + 2
+    assert (out["exported"], out["loaded"], out["jitted"], out["traced"]) == (0, 0, 1, 1) and out["sum"] == 2.0 * 10 + 2
     assert not (tmp_path / "exported").exists()

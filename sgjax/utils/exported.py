@@ -132,3 +132,11 @@ def compiled_programs() -> int:
     """How many compiled programs the calls of this process hold (grows by one with each compilation)."""
     runs = [run for run, _ in _loaded.values()] + list(_jitted.values())
     return sum(run._cache_size() for run in runs)
+
+
+def traced_programs() -> int:
+    """How many programs this process has traced: exported to the cache, jitted with exporting off, or
+    compiled again for a new input signature. Loading a program another process exported is not
+    counted (a load, not a trace), so this stays put when later calls load sizes the cache already holds."""
+    retraced = sum(max(run._cache_size() - 1, 0) for run, _ in _loaded.values())
+    return stats["exported"] + retraced + sum(run._cache_size() for run in _jitted.values())
