@@ -193,7 +193,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
             devices=args.devices,
             model={"paper": network.paper, "light": network.light, "tiny": network.tiny}[args.model](**hand),
         )
-        result = run(args.data, args.out, config, progress=not args.quiet)  # one directory or several
+        result = run(args.data, args.out, config, progress=not args.quiet, init=args.init)  # one directory or several
     except (dataset.DatasetError, ValueError) as exc:
         return _fail(str(exc))
     except KeyboardInterrupt:
@@ -601,6 +601,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--synthetic", type=int, default=0, metavar="N", help="first write N synthetic samples to --data")
+    p.add_argument(
+        "--init", default=None, metavar="RUN_DIR",
+        help="start from the latest weights of this `sgjax train` run (same --network, --model and --hand-points; "
+        "its optimiser state is not used), e.g. to go on training a checkpoint on more data",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar or per-epoch lines")
     p.set_defaults(func=_cmd_train)
 

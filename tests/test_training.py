@@ -222,6 +222,27 @@ def test_lr_decay_schedule_steps_and_resume(trained, samples, tmp_path):
     assert stored["lr_decay_epochs"] == 2
 
 
+def test_init_starts_from_another_runs_weights(trained, samples, tmp_path):
+    """`init`: the run starts from that run's latest weights (a rate so small that one epoch keeps them
+    to 1e-6, where a fresh start differs by the initialisation), is fingerprinted with it, and refuses
+    a network of another config or a directory with no checkpoint."""
+    config = trainer.TrainConfig(**{**CONFIG.__dict__, "epochs": 1, "lr": 1e-12, "weight_decay": 0.0})
+    started = trainer.train(samples, tmp_path / "a", config, progress=False, init=trained.run_dir)
+    fresh = trainer.train(samples, tmp_path / "b", config, progress=False)
+    pairs = list(zip(jax.tree.leaves(nnx.state(started.model)), jax.tree.leaves(nnx.state(trained.model)), strict=True))
+    for a, b in pairs:
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-6)
+    assert any(np.abs(np.asarray(a) - np.asarray(b)).max() > 1e-3
+               for a, b in zip(jax.tree.leaves(nnx.state(fresh.model)), jax.tree.leaves(nnx.state(trained.model))))
+    with pytest.raises(ValueError, match="other settings"):  # resuming it without its init is another run
+        trainer.train(samples, tmp_path / "a", trainer.TrainConfig(**{**config.__dict__, "epochs": 2}), progress=False)
+    other = trainer.TrainConfig(**{**config.__dict__, "model": dataclasses.replace(TINY, hand_points=8)})
+    with pytest.raises(ValueError, match="another config"):
+        trainer.train(samples, tmp_path / "c", other, progress=False, init=trained.run_dir)
+    with pytest.raises(ValueError, match="init"):
+        trainer.train(samples, tmp_path / "d", config, progress=False, init=tmp_path / "nowhere")
+
+
 def test_cli_train_synthetic_then_resume_and_bad_data(tmp_path, capsys):
     import sgjax_cli as cli
 

@@ -26,6 +26,7 @@ from sgjax.stage2.pointnetgpd import (
     NETWORK,
     PointNetGPD,
     PointNetGPDConfig,
+    load_model,
     loss,
     prepare_inputs,
     probability,
@@ -35,6 +36,7 @@ from train.trainer import (
     TrainConfig,
     TrainResult,
     classification_stats,
+    initial_model,
     jit_steps,
     make_optimizer,
     run_training,
@@ -83,15 +85,20 @@ def train(
     *,
     progress: bool = True,
     on_step: Callable[[int, int], None] | None = None,
+    init: str | os.PathLike | None = None,
 ) -> TrainResult:
     """Train PointNetGPD on shards in `data` (a directory, several of disjoint scenes, or validated columns) into `run_dir`.
 
     config: a TrainConfig whose `model` is a PointNetGPDConfig (None: `default_config()`). Resumes
     like `train.trainer.train`. Writes run_dir/{checkpoints/, metrics.json, metrics.csv, curves.png}
-    with meta["network"] = "pointnetgpd".
+    with meta["network"] = "pointnetgpd". init: a PointNetGPD run directory to start from, as in
+    `train.trainer.train`.
     """
     config = default_config() if config is None else config
     if not isinstance(config.model, PointNetGPDConfig):
         raise TypeError(f"config.model must be a PointNetGPDConfig, got {type(config.model).__name__}")
     model = PointNetGPD(config.model, rngs=nnx.Rngs(config.seed))
-    return run_training(model, make_steps, data, run_dir, config, meta={"network": NETWORK}, progress=progress, on_step=on_step)
+    if init is not None:
+        model = initial_model(init, config.model, lambda path: load_model(path)[0])
+    return run_training(model, make_steps, data, run_dir, config, meta={"network": NETWORK}, progress=progress,
+                        on_step=on_step, init=init)

@@ -49,6 +49,7 @@ from sgjax.stage2.ernet import (
     ERNet,
     ERNetConfig,
     ernet_loss,
+    load_model,
     prepare_inputs,
 )
 from sgjax.utils.files import atomic_write, atomic_write_text
@@ -528,17 +529,35 @@ def train(
     *,
     progress: bool = True,
     on_step: Callable[[int, int], None] | None = None,
+    init: str | os.PathLike | None = None,
 ) -> TrainResult:
     """Train E-RNet on shards in `data` (a directory, several of disjoint scenes, or validated columns), writing to `run_dir`.
 
     Resumes from the last epoch checkpoint in `run_dir` if there is one (same settings required,
     `epochs` may grow). `on_step(epoch, step)` is called after every training step (e.g. logging).
+    init: a `sgjax train` run directory whose latest weights (not its optimiser state) start this run,
+    e.g. to go on training a checkpoint on more data; its network config must equal `config.model`.
     Writes run_dir/{checkpoints/, metrics.json, metrics.csv, curves.png}.
     """
     if config.model.n_refinements != config.spec.num_refinements:
         raise ValueError("model n_refinements must equal the gripper spec's refinement count")
     model = ERNet(config.model, rngs=nnx.Rngs(config.seed))
-    return run_training(model, make_steps, data, run_dir, config, progress=progress, on_step=on_step)
+    if init is not None:
+        model = initial_model(init, config.model, lambda path: load_model(path)[0])
+    return run_training(model, make_steps, data, run_dir, config, progress=progress, on_step=on_step, init=init)
+
+
+def initial_model(init: str | os.PathLike, model_config, load: Callable[[str], nnx.Module]) -> nnx.Module:
+    """The network of run directory `init` (latest epoch) to start a run from; ValueError when its
+    config is not `model_config` (the weights would not fit) or it holds no checkpoint."""
+    try:
+        model = load(os.fspath(init))
+    except FileNotFoundError as exc:
+        raise ValueError(f"init: {exc}") from exc
+    if model.config != model_config:
+        raise ValueError(f"init: {init} holds a network with another config ({model.config}) than this run's "
+                         f"({model_config}); pass the same --model / --hand-points")
+    return model
 
 
 def run_training(
@@ -551,14 +570,16 @@ def run_training(
     meta: Mapping[str, Any] | None = None,
     progress: bool = True,
     on_step: Callable[[int, int], None] | None = None,
+    init: str | os.PathLike | None = None,
 ) -> TrainResult:
     """The training loop of `train`, for any network trained on these shards (E-RNet, the baselines).
 
     model: the freshly initialised network (seeded by config.seed; `config.model` is its config, with
     `to_dict()`); steps(graphdef, config) -> (tx, train_step, eval_step) as `make_steps`, whose stats
     follow `_batch_stats` (the "refine_*" entries may be left out); meta: extra JSON entries stored
-    in every checkpoint's meta (e.g. {"network": "pointnetgpd"}). Data split, batching, prefetch,
-    checkpoints, exact resume and outputs are those of `train`.
+    in every checkpoint's meta (e.g. {"network": "pointnetgpd"}); init: the run directory `model` was
+    loaded from (`initial_model`), part of the run's fingerprint so that a resume keeps it. Data split,
+    batching, prefetch, checkpoints, exact resume and outputs are those of `train`.
     """
     import orbax.checkpoint as ocp
     from tqdm.auto import tqdm
@@ -577,6 +598,8 @@ def run_training(
     history: list[dict[str, Any]] = []
     start = manager.latest_step() or 0
     fingerprint = {"config": config.resume_key(), "n_train": n_train, "n_held_out": n_held}
+    if init is not None:  # only then: runs started from scratch keep the fingerprint they always had
+        fingerprint["init"] = os.path.abspath(os.fspath(init))
     if start:
         saved = manager.restore(start, args=ocp.args.Composite(**{META_ITEM: ocp.args.JsonRestore()}))[META_ITEM]
         if saved["fingerprint"] != fingerprint:
