@@ -207,7 +207,7 @@ def _cmd_score_data(args: argparse.Namespace) -> int:
     from train import dataset, judgement, score_data
 
     try:
-        result = score_data.score_directory(args.data, args.model, args.network, args.batch_size)
+        result = score_data.score_directory(args.data, args.model, args.network, args.batch_size, args.held_out, args.seed)
     except (dataset.DatasetError, ValueError, FileNotFoundError) as exc:
         return _fail(str(exc))
     if args.json:
@@ -618,6 +618,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--model", default=None, help="a `sgjax train` run directory (default: the shipped checkpoint)")
     p.add_argument("--network", choices=("ernet", "pointnetgpd"), default="ernet")
     p.add_argument("--batch-size", type=int, default=128)
+    p.add_argument(
+        "--held-out", type=float, default=None, metavar="FRACTION",
+        help="only the scenes a `sgjax train --held-out FRACTION --seed SEED` run holds out of these directories "
+        "(and the held-out objects): compares runs trained on different data on scenes none trained on",
+    )
+    p.add_argument("--seed", type=int, default=0, help="the training runs' --seed (with --held-out)")
     p.add_argument("--json", action="store_true", help="print every metric as JSON")
     p.set_defaults(func=_cmd_score_data)
 

@@ -228,3 +228,15 @@ def test_train_and_judge_on_labelled_scenes(whole, tmp_path, capsys):
     keys = json.loads(capsys.readouterr().out)
     assert {"auc", "per_source", "ece", "top1_success", "random_success"} <= set(keys)
     assert main(["score-data", "--data", str(tmp_path / "nowhere"), "--model", str(tmp_path / "run")]) != 0
+    # --held-out: only the scenes a run with that split holds out, and the held-out objects. Scene 0 holds
+    # only held-out objects here, so a split that holds out scene 1 keeps every seen sample, one that
+    # trains on it none.
+    samples = dataset.read_shards(out)
+    scene, seen = samples["scene_seed"], samples["valid"] & ~samples["held_out_object"]
+    held_in = lambda s: np.isin(scene, scene[dataset.split_by_scene(scene, 0.5, s)[1]])
+    for wanted in (True, False):
+        seed = next(s for s in range(64) if len(np.unique(scene[held_in(s)])) == 1 and (held_in(s) & seen).any() == wanted)
+        part = score_data.score_directory(out, tmp_path / "run", held_out=0.5, seed=seed)
+        assert part["held_out_objects"]["samples"] == objects["samples"]
+        assert (part["seen_objects"] or {}).get("samples", 0) == int((held_in(seed) & seen).sum()) == (seen.sum() if wanted else 0)
+    assert main(["score-data", "--data", str(out), "--model", str(tmp_path / "run"), "--held-out", "0.5", "--seed", str(seed)]) == 0

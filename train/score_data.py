@@ -35,8 +35,14 @@ def load_scorer(model: str | os.PathLike | None, network: str = "ernet"):
     raise ValueError(f"network must be 'ernet' or 'pointnetgpd', got {network!r}")
 
 
-def score_directory(data: str | os.PathLike | Sequence[str | os.PathLike], model=None, network: str = "ernet", batch_size: int = 128) -> dict[str, Any]:
+def score_directory(data: str | os.PathLike | Sequence[str | os.PathLike], model=None, network: str = "ernet",
+                    batch_size: int = 128, held_out: float | None = None, seed: int = 0) -> dict[str, Any]:
     """Judge a scorer on every valid sample of a labelled directory (or several, of disjoint scenes).
+
+    held_out: judge only the scenes that a `sgjax train` run with this held-out fraction and `seed` holds
+    out of these directories (`dataset.split_by_scene`, a hash per scene, so the same scenes whatever
+    other directories a run read), and the held-out objects: runs trained on different data are then
+    compared on scenes none of them trained on. None: every sample.
 
     -> the judgement of all samples (`train.judgement.judge`: "auc", "per_source" {name: {"auc", ...}},
     "ece", "top1_success", "random_success", ...) plus "classifier" (the summed metrics at the
@@ -45,9 +51,14 @@ def score_directory(data: str | os.PathLike | Sequence[str | os.PathLike], model
     scorer, make_steps = load_scorer(model, network)
     config = trainer.TrainConfig(model=scorer.config, batch_size=batch_size)
     samples = dataset.read_shards(data, getattr(scorer.config, "crop", "enlarged"))
-    samples = dataset.select(samples, np.flatnonzero(samples["valid"]))
+    keep = samples["valid"]
+    if held_out is not None:
+        scenes = np.zeros(len(keep), bool)
+        scenes[dataset.split_by_scene(samples["scene_seed"], held_out, seed)[1]] = True
+        keep = keep & (scenes | samples["held_out_object"])
+    samples = dataset.select(samples, np.flatnonzero(keep))
     if not len(samples["label"]):
-        raise dataset.DatasetError(f"{data}: no valid samples")
+        raise dataset.DatasetError(f"{data}: no valid samples" + ("" if held_out is None else " in the held-out scenes"))
     graphdef, params = nnx.split(scorer)
     _, _, eval_step = make_steps(graphdef, config)
     key = jax.random.key(0)
