@@ -2,7 +2,7 @@
 grasps that work? (run by hand; prints a markdown table).
 
     python benchmarks/object_graspability.py --objects unseen --names superquadric_006,superquadric_003
-                                             [--drops 4] [--model RUN_DIR] [--json OUT]
+                                             [--drops 4] [--model RUN_DIR] [--relabel-axes] [--json OUT]
 
 Each named object is dropped alone on the table `--drops` times (seeded scenes, `envs.scene.make_scene`),
 seen by the benchmark's camera, and these grasps are simulated with the benchmark's trial (lift,
@@ -16,7 +16,8 @@ reorient, 1 N):
   default    those of them the planner's default filter keeps, and `fallback` those its fallback keeps
   passed     those of them E-RNet scores above 0.7
 
-Per object: successes / grasps per column, and the best E-RNet score. The same seed gives the same
+Per object: successes / grasps per column, and the best E-RNet score. `--relabel-axes`: Stage 1 with
+`MatchConfig(relabel_axes=True)` (the fit's axes also matched relabelled). The same seed gives the same
 scenes and outcomes.
 """
 
@@ -38,7 +39,8 @@ from eval.oracle import top_down_candidates
 from sgjax.geometry.pointcloud import table_plane
 from sgjax.planner import FALLBACK_FILTER, Planner, PlannerConfig
 from sgjax.stage1.filters import FilterConfig
-from sgjax.stage1.pipeline import Stage1
+from sgjax.stage1.matching import MatchConfig
+from sgjax.stage1.pipeline import Stage1, Stage1Config
 from sgjax.stage2 import ernet
 
 # (ii), (iii) and the extra filters off: only the gripper meeting the object (i) or the table (v) removes.
@@ -92,11 +94,13 @@ def main() -> None:
     parser.add_argument("--names", required=True, help="comma-separated object names (suffixes of the set's names)")
     parser.add_argument("--drops", type=int, default=4)
     parser.add_argument("--model", default=None, help="E-RNet run directory (default: the shipped one)")
+    parser.add_argument("--relabel-axes", action="store_true", help="Stage 1 with MatchConfig(relabel_axes=True)")
     parser.add_argument("--json", default=None, help="also write the results here")
     args = parser.parse_args()
     assets, _, _ = resolve_objects(declutter.get_setting("seen-10"), args.objects)
     config = declutter.DeclutterConfig()
-    planner = Planner(args.model, config=PlannerConfig(scene_cloud=stage2_scene_cloud(), fallback_filter=None))
+    stage1 = Stage1Config(match=MatchConfig(relabel_axes=args.relabel_axes))
+    planner = Planner(args.model, config=PlannerConfig(stage1=stage1, scene_cloud=stage2_scene_cloud(), fallback_filter=None))
     results = {}
     print("| object | oracle top-down | Stage 1, (i) + (v) only | default filter keeps | fallback keeps | E-RNet > 0.7 | best score |")
     print("|---|---:|---:|---:|---:|---:|---:|")

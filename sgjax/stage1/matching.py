@@ -35,6 +35,11 @@ class MatchConfig:
     K2: int = 5
     eps_tol: float = 0.3  # eps2 within this of 0 or 2 ...
     axis_tol: float = 0.1  # ... and |a_x - a_y| / max below this: the dual parameterisation exists
+    # Also match the query's fitted axes relabelled (which one is z, x and y): EMS may call any axis of
+    # a single view's fit z, while the database's fits call the primitive's height z. Each relabelling
+    # keeps the fitted epsilon (exact only where eps1 = eps2), so it is a matching key, not an
+    # equivalent shape; the top K2 are taken over all of them. False: the paper's matching.
+    relabel_axes: bool = False
 
 
 @jax.tree_util.register_dataclass
@@ -72,6 +77,13 @@ class MatchResult:
     d_shape: jax.Array
     query_param: jax.Array
     db_param: jax.Array
+    relabel: jax.Array | None = None  # [Q, K2] row of RELABELLINGS applied to the query (None: identity)
+
+
+# Axis relabellings of a fit (`MatchConfig.relabel_axes`): new axis i is old axis PERM[r][i]; the odd
+# permutations flip the new z so that the frame stays right-handed (a superquadric is symmetric in it).
+RELABELLINGS = ((0, 1, 2), (1, 2, 0), (2, 0, 1), (1, 0, 2), (0, 2, 1), (2, 1, 0))
+_RELABEL_SIGN = ((1, 1, 1), (1, 1, 1), (1, 1, 1), (1, 1, -1), (1, 1, -1), (1, 1, -1))
 
 
 def parameterisations(scale: jax.Array, epsilon: jax.Array, cfg: MatchConfig = MatchConfig()):
@@ -116,6 +128,20 @@ def _best_pair(dist: jax.Array, q_valid: jax.Array, c_valid: jax.Array) -> tuple
 @functools.partial(jax.jit, static_argnames="cfg")
 def match(query_scale: jax.Array, query_epsilon: jax.Array, db: MatchDB, cfg: MatchConfig = MatchConfig()) -> MatchResult:
     """Top-K2 database primitives for each query: query_scale [Q, 3], query_epsilon [Q, 2] -> MatchResult."""
+    if not cfg.relabel_axes:
+        return _match(query_scale, query_epsilon, db, cfg)
+    q, r = query_scale.shape[0], len(RELABELLINGS)
+    relabelled = query_scale[:, jnp.asarray(RELABELLINGS)].reshape(q * r, 3)  # [Q * R, 3]
+    each = _match(relabelled, jnp.repeat(query_epsilon, r, 0), db, cfg)
+    k2 = each.index.shape[1]
+    flat = lambda x: x.reshape(q, r * k2)
+    neg_s, order = jax.lax.top_k(-flat(each.score), k2)  # the best K2 over every relabelling
+    take = lambda x: jnp.take_along_axis(flat(x), order, 1)
+    return MatchResult(take(each.index), -neg_s, take(each.d_shape), take(each.query_param), take(each.db_param),
+                       (order // k2).astype(jnp.int32))
+
+
+def _match(query_scale: jax.Array, query_epsilon: jax.Array, db: MatchDB, cfg: MatchConfig) -> MatchResult:
     qs, qe, qv = parameterisations(query_scale, query_epsilon, cfg)  # [Q, 2, ...]
     k1 = min(cfg.K1, db.scale.shape[0])
     k2 = min(cfg.K2, k1)
@@ -144,6 +170,12 @@ def transfer_grasps(query: Superquadric, result: MatchResult, db: MatchDB) -> tu
     quarter = jnp.pi / 4
     turn = rot_z(quarter * (result.query_param - result.db_param).astype(jnp.float32))  # [Q, K2, 3, 3]
     rotation = query.rotation[:, None] @ turn
+    if result.relabel is not None:  # the relabelled fit's frame: its axis i is the fit's axis PERM[i]
+        perm = jnp.asarray(RELABELLINGS)[result.relabel]  # [Q, K2, 3]
+        sign = jnp.asarray(_RELABEL_SIGN, jnp.float32)[result.relabel]
+        axes = jnp.take_along_axis(jnp.broadcast_to(query.rotation[:, None], perm.shape[:2] + (3, 3)),
+                                   perm[..., None, :], -1) * sign[..., None, :]
+        rotation = axes @ turn
     t_q = pose_matrix(rotation, jnp.broadcast_to(query.translation[:, None], rotation.shape[:-1]))
     poses = t_q[:, :, None] @ db.grasps[result.index]
     return poses, db.widths[result.index], db.mask[result.index]
