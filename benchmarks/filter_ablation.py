@@ -7,7 +7,7 @@ each filter beyond the paper's only where the benchmark shows it helps).
                                          [--reuse RUN_WITHOUT_FALLBACK]
 
 Each variant is `supergrasp` (or --method) with one change to today's planner (`VARIANTS`: a
-`FilterConfig` change, or the second plan's filter), run on the same scenes (same seed) through
+`FilterConfig` change, the second plan's filter, or a `MatchConfig` change), run on the same scenes (same seed) through
 `eval.benchmark.run_benchmark` into its own folder OUT/<variant> (resumable: rerun the same command
 after an interrupt). Prints, per variant: GSR / TSR / GA, the unfinished scenes by why they ended
 (Stage 1 kept no candidate; Stage 2 scored every candidate <= the threshold; the memory of failed grasps
@@ -43,6 +43,8 @@ VARIANTS = {
     "paper": {"shadow_depth": 0.0, "obstacle_margin": 0.0, "hidden_contacts": "accept"},  # = labelling's stage1_paper, with (iv)
     # A second plan with only the filters beyond the paper's off (the default also loosens (ii), (iii)).
     "fallback-paper": {"fallback": {"shadow_depth": 0.0, "hidden_contacts": "accept"}},
+    # Not a filter: the matching also tries the fit's axes relabelled (`MatchConfig.relabel_axes`).
+    "relabel-axes": {"match": {"relabel_axes": True}},
 }
 
 
@@ -53,12 +55,14 @@ def variant_config(name: str):
     base = PlannerConfig(scene_cloud=stage2_scene_cloud())
     changes = dict(VARIANTS[name])
     fallback = changes.pop("fallback", "default")
+    matching = dataclasses.replace(base.stage1.match, **changes.pop("match", {}))
     if fallback == "default":
         fallback_filter = base.fallback_filter
     else:
         fallback_filter = None if fallback is None else dataclasses.replace(FilterConfig(), **fallback)
     filt = dataclasses.replace(FilterConfig(), **changes)
-    return dataclasses.replace(base, stage1=dataclasses.replace(base.stage1, filter=filt), fallback_filter=fallback_filter)
+    return dataclasses.replace(base, stage1=dataclasses.replace(base.stage1, filter=filt, match=matching),
+                               fallback_filter=fallback_filter)
 
 
 def differs_only_by_fallback(name: str) -> bool:
