@@ -45,6 +45,7 @@ VARIANTS = {
     "fallback-paper": {"fallback": {"shadow_depth": 0.0, "hidden_contacts": "accept"}},
     # Not a filter: the matching also tries the fit's axes relabelled (`MatchConfig.relabel_axes`).
     "relabel-axes": {"match": {"relabel_axes": True}},
+    "relabel-extra": {"match": {"relabel_extra": 5}},  # ... only as 5 extra matches after the paper's K2
 }
 
 

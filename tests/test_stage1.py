@@ -182,6 +182,14 @@ def test_relabelled_axes_match_and_transfer_as_the_primitives_own(small_db, perm
     assert _same_grasp_sets(np.asarray(poses)[0, 0][np.asarray(mask)[0, 0]], expected)
     paper = match(fit.scale, fit.epsilon, mdb, MatchConfig())
     assert paper.relabel is None and (int(paper.index[0, 0]) != i or float(paper.score[0, 0]) > 1e-2)
+    # relabel_extra: the paper's K2 first, unchanged, then the other labellings' best, the primitive first.
+    extra = match(fit.scale, fit.epsilon, mdb, MatchConfig(relabel_extra=3))
+    k2 = paper.index.shape[1]
+    assert extra.index.shape == (1, k2 + 3) and (np.asarray(extra.relabel)[0, :k2] == 0).all()
+    np.testing.assert_array_equal(np.asarray(extra.index)[:, :k2], np.asarray(paper.index))
+    assert int(extra.index[0, k2]) == i and int(extra.relabel[0, k2]) > 0
+    poses, _, mask = transfer_grasps(fit, jax.tree.map(lambda x: x[:, k2:k2 + 1], extra), mdb)
+    assert _same_grasp_sets(np.asarray(poses)[0, 0][np.asarray(mask)[0, 0]], expected)
 
 
 # ---------------------------------------------------------------------------------------------

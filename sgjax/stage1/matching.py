@@ -40,6 +40,9 @@ class MatchConfig:
     # keeps the fitted epsilon (exact only where eps1 = eps2), so it is a matching key, not an
     # equivalent shape; the top K2 are taken over all of them. False: the paper's matching.
     relabel_axes: bool = False
+    # Instead, keep the paper's top K2 and append the best `relabel_extra` matches of the other five
+    # labellings after them (so no match of the paper's is displaced). 0: none.
+    relabel_extra: int = 0
 
 
 @jax.tree_util.register_dataclass
@@ -128,17 +131,25 @@ def _best_pair(dist: jax.Array, q_valid: jax.Array, c_valid: jax.Array) -> tuple
 @functools.partial(jax.jit, static_argnames="cfg")
 def match(query_scale: jax.Array, query_epsilon: jax.Array, db: MatchDB, cfg: MatchConfig = MatchConfig()) -> MatchResult:
     """Top-K2 database primitives for each query: query_scale [Q, 3], query_epsilon [Q, 2] -> MatchResult."""
-    if not cfg.relabel_axes:
+    if not (cfg.relabel_axes or cfg.relabel_extra):
         return _match(query_scale, query_epsilon, db, cfg)
-    q, r = query_scale.shape[0], len(RELABELLINGS)
-    relabelled = query_scale[:, jnp.asarray(RELABELLINGS)].reshape(q * r, 3)  # [Q * R, 3]
+    first = 0 if cfg.relabel_axes else 1  # "extra": the identity's matches are the paper's, kept apart
+    labellings = jnp.asarray(RELABELLINGS[first:])
+    q, r = query_scale.shape[0], len(labellings)
+    relabelled = query_scale[:, labellings].reshape(q * r, 3)  # [Q * R, 3]
     each = _match(relabelled, jnp.repeat(query_epsilon, r, 0), db, cfg)
     k2 = each.index.shape[1]
     flat = lambda x: x.reshape(q, r * k2)
-    neg_s, order = jax.lax.top_k(-flat(each.score), k2)  # the best K2 over every relabelling
+    keep = k2 if cfg.relabel_axes else min(cfg.relabel_extra, r * k2)
+    neg_s, order = jax.lax.top_k(-flat(each.score), keep)  # the best over the relabellings
     take = lambda x: jnp.take_along_axis(flat(x), order, 1)
-    return MatchResult(take(each.index), -neg_s, take(each.d_shape), take(each.query_param), take(each.db_param),
-                       (order // k2).astype(jnp.int32))
+    best = MatchResult(take(each.index), -neg_s, take(each.d_shape), take(each.query_param), take(each.db_param),
+                       (order // k2 + first).astype(jnp.int32))
+    if cfg.relabel_axes:
+        return best
+    paper = _match(query_scale, query_epsilon, db, cfg)
+    paper = dataclasses.replace(paper, relabel=jnp.zeros_like(paper.index, jnp.int32))
+    return jax.tree.map(lambda a, b: jnp.concatenate([a, b], 1), paper, best)
 
 
 def _match(query_scale: jax.Array, query_epsilon: jax.Array, db: MatchDB, cfg: MatchConfig) -> MatchResult:
