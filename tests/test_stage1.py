@@ -190,6 +190,9 @@ def test_relabelled_axes_match_and_transfer_as_the_primitives_own(small_db, perm
     assert int(extra.index[0, k2]) == i and int(extra.relabel[0, k2]) > 0
     poses, _, mask = transfer_grasps(fit, jax.tree.map(lambda x: x[:, k2:k2 + 1], extra), mdb)
     assert _same_grasp_sets(np.asarray(poses)[0, 0][np.asarray(mask)[0, 0]], expected)
+    for bad in ({"relabel_extra": -1}, {"relabel_axes": True, "relabel_extra": 2}, {"K2": 0}):
+        with pytest.raises(ValueError):
+            MatchConfig(**bad)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -44,6 +44,12 @@ class MatchConfig:
     # labellings after them (so no match of the paper's is displaced). 0: none.
     relabel_extra: int = 0
 
+    def __post_init__(self):
+        if self.K1 < 1 or self.K2 < 1 or self.relabel_extra < 0:
+            raise ValueError(f"K1 and K2 must be >= 1 and relabel_extra >= 0, got {self.K1}, {self.K2}, {self.relabel_extra}")
+        if self.relabel_axes and self.relabel_extra:
+            raise ValueError("relabel_axes (top K2 over all labellings) and relabel_extra (extra matches) exclude each other")
+
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass
