@@ -80,8 +80,9 @@ def probe(asset, drops: int, planner: Planner, config: declutter.DeclutterConfig
                                         cands.widths.astype(np.float32), mask, spec=config.gripper).eval_prob)
         best = max(best, float(scores.max()))
         pairs = list(zip(cands.primitive_id.tolist(), cands.template_id.tolist()))
+        kept = {k: _keys(found[k]) for k in ("default", "fallback")}
         groups = {"stage1": np.ones(len(ok), bool), "passed": scores > planner.config.eval_threshold,
-                  **{k: np.array([p in _keys(found[k]) for p in pairs], bool) for k in ("default", "fallback")}}
+                  **{k: np.array([p in keys for p in pairs], bool) for k, keys in kept.items()}}
         for k, rows in groups.items():
             counts[k][0] += int(ok[rows].sum())
             counts[k][1] += int(rows.sum())

@@ -97,8 +97,9 @@ def train(
     config = default_config() if config is None else config
     if not isinstance(config.model, PointNetGPDConfig):
         raise TypeError(f"config.model must be a PointNetGPDConfig, got {type(config.model).__name__}")
-    model = PointNetGPD(config.model, rngs=nnx.Rngs(config.seed))
-    if init is not None:
+    if init is None:
+        model = PointNetGPD(config.model, rngs=nnx.Rngs(config.seed))
+    else:
         model = initial_model(init, config.model, lambda path: load_model(path)[0])
     return run_training(model, make_steps, data, run_dir, config, meta={"network": NETWORK}, progress=progress,
                         on_step=on_step, init=init)

@@ -541,8 +541,9 @@ def train(
     """
     if config.model.n_refinements != config.spec.num_refinements:
         raise ValueError("model n_refinements must equal the gripper spec's refinement count")
-    model = ERNet(config.model, rngs=nnx.Rngs(config.seed))
-    if init is not None:
+    if init is None:
+        model = ERNet(config.model, rngs=nnx.Rngs(config.seed))
+    else:
         model = initial_model(init, config.model, lambda path: load_model(path)[0])
     return run_training(model, make_steps, data, run_dir, config, progress=progress, on_step=on_step, init=init)
 
