@@ -92,6 +92,39 @@ def test_paper_filters_drop_only_the_extra_judgement():
     assert paper.filter.max_normal_angle_deg == CONFIG.stage1.filter.max_normal_angle_deg
 
 
+def test_relabel_source_keeps_only_the_relabelled_matches_grasps(setup):
+    """stage1_relabel: Stage 1 with relabelled matches appended, only the grasps of those (rank >= K2)."""
+    from envs import camera as camera_lib
+    from envs import scene as scene_lib
+    from train.label import scene_candidates
+
+    objects, labellers = setup
+    config = dataclasses.replace(CONFIG, per_source=(("stage1", 2), ("stage1_relabel", 4)), relabel_extra=5)
+    both = Labellers.make(config, labellers.stage1)
+    assert both.stage1_relabel.config.match.relabel_extra == 5 and labellers.stage1_relabel is None
+    seed = scene_seed(config.seed, 0)
+    scene = scene_lib.make_scene(list(objects), config.n_objects, seed, config.scene, config.spec)
+    obs = camera_lib.observe(scene, config.camera, seed=seed)
+    visible = np.flatnonzero(np.bincount(obs.point_labels[obs.point_labels >= 0], minlength=scene.n_objects) >= 50)
+    _, found = scene_candidates(obs, visible, visible, both, config, seed)
+    k2 = config.stage1.match.K2
+    direct = both.stage1_relabel.batch(
+        [obs.object_cloud(int(k)) for k in visible] + [obs.object_cloud(int(visible[0]))] * (config.n_objects - len(visible)),
+        [obs.points] * config.n_objects, np.tile(np.asarray(config.camera.position, np.float32), (config.n_objects, 1)),
+        seed % (2**31), scene_lib.TABLE_PLANE,
+    )
+    total = 0
+    for k, c in zip(visible, direct):
+        poses, widths = found["stage1_relabel"][int(k)]
+        extra = c.match_rank >= k2
+        np.testing.assert_allclose(poses, c.poses[extra])
+        np.testing.assert_allclose(widths, c.widths[extra])
+        total += int(extra.sum())
+    assert total > 0  # the relabelled matches reach some grasp on these objects
+    with pytest.raises(ValueError, match="relabel_extra"):
+        LabelConfig(relabel_extra=0)
+
+
 @pytest.fixture(scope="module")
 def whole(setup, tmp_path_factory):
     """Scenes 0 and 1 labelled in one run -> (directory, summary)."""

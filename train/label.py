@@ -95,6 +95,8 @@ class LabelConfig:
     # whole scene): a few kept grasps per target are all a label source needs, at a fraction of the cost.
     gpd: GPDConfig = GPDConfig(num_samples=32, max_points=2048)
     perturbation: sources.Perturbation = sources.Perturbation()
+    # Relabelled matches the stage1_relabel source appends after the paper's K2 (unused without it).
+    relabel_extra: int = 5
 
     def __post_init__(self):
         for name in ("n_objects", "targets_per_scene", "scenes_per_shard", "min_target_points", "max_scene_points"):
@@ -109,6 +111,8 @@ class LabelConfig:
                 raise ValueError(f"LabelConfig.per_source: {name} must have >= 0 grasps, got {count}")
         if len({name for name, _ in per_source}) != len(per_source) or not any(c for _, c in per_source):
             raise ValueError(f"LabelConfig.per_source must name each source once and ask for some grasps, got {per_source}")
+        if self.relabel_extra < 1:
+            raise ValueError(f"LabelConfig.relabel_extra must be >= 1, got {self.relabel_extra}")
         if self.gpd.spec != self.spec:
             raise ValueError("LabelConfig.gpd.spec differs from the Stage-1 gripper spec")
         object.__setattr__(self, "per_source", per_source)
@@ -192,10 +196,12 @@ def stage2_cloud(points: np.ndarray, config: LabelConfig, labels: np.ndarray | N
 
 @dataclasses.dataclass
 class Labellers:
-    """What labels a scene: Stage 1 as the planner runs it and Stage 1 with the paper's filters only."""
+    """What labels a scene: Stage 1 as the planner runs it, Stage 1 with the paper's filters only, and
+    (when the stage1_relabel source is asked for) Stage 1 with relabelled matches appended."""
 
     stage1: Stage1
     stage1_paper: Stage1
+    stage1_relabel: Stage1 | None = None
 
     @classmethod
     def make(cls, config: LabelConfig, stage1: Stage1 | None = None) -> Labellers:
@@ -203,7 +209,10 @@ class Labellers:
         stage1 = Stage1(None, config.stage1) if stage1 is None else stage1
         if stage1.config != config.stage1:
             raise ValueError("stage1.config differs from config.stage1")
-        return cls(stage1, Stage1(stage1.db, sources.paper_filters(config.stage1)))
+        relabel = None
+        if dict(config.per_source).get("stage1_relabel", 0):
+            relabel = Stage1(stage1.db, sources.relabelled_matches(config.stage1, config.relabel_extra))
+        return cls(stage1, Stage1(stage1.db, sources.paper_filters(config.stage1)), relabel)
 
 
 def scene_objects(index: int, objects: Sequence, config: LabelConfig, rng: np.random.Generator) -> tuple[list, int]:
@@ -246,6 +255,15 @@ def scene_candidates(
         if name in wanted or perturbed:
             batch = stage1.batch(clouds, scenes, views, seed % (2**31), scene_lib.TABLE_PLANE)[: len(visible)]
             found[name] = {int(k): (c.poses, c.widths) for k, c in zip(visible, batch)}
+    if "stage1_relabel" in wanted:
+        if labellers.stage1_relabel is None:
+            raise ValueError("the stage1_relabel source is asked for but the labellers have no relabelling Stage 1")
+        batch = labellers.stage1_relabel.batch(clouds, [obs.points] * len(clouds), views, seed % (2**31), scene_lib.TABLE_PLANE)
+        k2 = labellers.stage1_relabel.config.match.K2
+        # Only the relabelled matches' grasps (rank >= K2): the paper's own are the stage1 source.
+        found["stage1_relabel"] = {
+            int(k): (c.poses[c.match_rank >= k2], c.widths[c.match_rank >= k2]) for k, c in zip(visible, batch[: len(visible)])
+        }
     targets: list[int] = []
     use_gpd = "gpd" in wanted or perturbed
     if use_gpd:

@@ -10,6 +10,12 @@ records its source (`SOURCES`, stored as its index):
                 the extra filters remove is labelled instead of never being seen.
   gpd           GPD-style antipodal samples on the target (`sgjax.samplers.gpd`), every neighbour an
                 obstacle, picked at random among the kept ones (not the best-ranked: a spread of quality).
+  stage1_relabel
+                Stage 1 as the planner runs it, with `MatchConfig.relabel_extra` matches of the fitted
+                superquadric's other axis labellings appended; only the grasps transferred from those
+                extra matches are kept (the rest is the stage1 source). A single view often labels a flat
+                object's axes so that the database's matching shape ranks low; these are the candidates
+                that reach it (issue "Stage 2, part 2").
   perturbed     grasps of the sources above moved by 0.5-2 cm and turned by 5-20 deg about the centre
                 of the closing region: near misses and hard negatives.
 
@@ -27,7 +33,8 @@ from sgjax.geometry.gripper import GripperSpec
 from sgjax.samplers import gpd as gpd_sampler
 from sgjax.stage1.pipeline import Stage1Config
 
-SOURCES = ("stage1", "stage1_paper", "gpd", "perturbed")
+# Appended only: a stored code is an index into this tuple, so older label directories stay readable.
+SOURCES = ("stage1", "stage1_paper", "gpd", "perturbed", "stage1_relabel")
 
 
 def source_index(name: str) -> int:
@@ -44,6 +51,16 @@ def paper_filters(config: Stage1Config) -> Stage1Config:
     are zeroed too, and a finger whose contact face is hidden is not held against the grasp."""
     relaxed = dataclasses.replace(config.filter, hidden_contacts="accept", shadow_depth=0.0, obstacle_margin=0.0)
     return dataclasses.replace(config, filter=relaxed)
+
+
+def relabelled_matches(config: Stage1Config, extra: int) -> Stage1Config:
+    """`config` whose matching appends `extra` matches of the fitted superquadric's other axis labellings
+    after the paper's top K2 (`MatchConfig.relabel_extra`); the stage1_relabel source keeps the grasps
+    of those (match_rank >= K2)."""
+    if extra < 1:
+        raise ValueError(f"the stage1_relabel source needs relabel_extra >= 1, got {extra}")
+    match = dataclasses.replace(config.match, relabel_axes=False, relabel_extra=int(extra))
+    return dataclasses.replace(config, match=match)
 
 
 @dataclasses.dataclass(frozen=True)
