@@ -655,7 +655,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--per-source", default=None, metavar="SOURCE=N,...",
         help="grasps per target from each candidate source (default stage1=8,stage1_paper=8,gpd=8,perturbed=8; "
-        "each executed with its 3 refinements)",
+        "also stage1_relabel: Stage 1 with relabelled matches appended; each executed with its 3 refinements)",
     )
     p.add_argument(
         "--held-out-objects", default=None, metavar="NAME,...",
