@@ -46,6 +46,8 @@ VARIANTS = {
     # Not a filter: the matching also tries the fit's axes relabelled (`MatchConfig.relabel_axes`).
     "relabel-axes": {"match": {"relabel_axes": True}},
     "relabel-extra": {"match": {"relabel_extra": 5}},  # ... only as 5 extra matches after the paper's K2
+    # ... only in the second plan (the first finds nothing): `PlannerConfig.fallback_match`.
+    "fallback-relabel": {"fallback_match": {"relabel_extra": 5}},
 }
 
 
@@ -57,13 +59,15 @@ def variant_config(name: str):
     changes = dict(VARIANTS[name])
     fallback = changes.pop("fallback", "default")
     matching = dataclasses.replace(base.stage1.match, **changes.pop("match", {}))
+    fallback_match = changes.pop("fallback_match", None)
+    fallback_match = None if fallback_match is None else dataclasses.replace(base.stage1.match, **fallback_match)
     if fallback == "default":
         fallback_filter = base.fallback_filter
     else:
         fallback_filter = None if fallback is None else dataclasses.replace(FilterConfig(), **fallback)
     filt = dataclasses.replace(FilterConfig(), **changes)
     return dataclasses.replace(base, stage1=dataclasses.replace(base.stage1, filter=filt, match=matching),
-                               fallback_filter=fallback_filter)
+                               fallback_filter=fallback_filter, fallback_match=fallback_match)
 
 
 def differs_only_by_fallback(name: str) -> bool:

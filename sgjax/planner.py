@@ -60,6 +60,7 @@ from sgjax.stage1.database import PrimitiveDB
 from sgjax.utils import exported
 from sgjax.utils.cache import enable_compilation_cache
 from sgjax.stage1.filters import FilterConfig
+from sgjax.stage1.matching import MatchConfig
 from sgjax.stage1.memory import Stage1Memory
 from sgjax.stage1.pipeline import Candidates, Stage1, Stage1Config
 from sgjax.stage2.scene_cloud import SceneCloudConfig
@@ -118,6 +119,10 @@ class PlannerConfig:
         plan once more with Stage 1's coarse filter set to this, and let E-RNet judge what it lets
         through; `Plan.fallback` says when that plan was executed. Default `FALLBACK_FILTER` (looser);
         None: no second plan (the paper's planner).
+    fallback_match: the second plan's matching (`MatchConfig`), None: the first plan's (`stage1.match`).
+        E.g. `MatchConfig(relabel_extra=5)`: when nothing was found, also match the fitted
+        superquadric's other axis labellings, for flat objects whose single-view fit names its axes so
+        that the database's matching shape ranks low (docs/benchmark.md). Used only with a fallback_filter.
     reuse_tolerance: with a `Stage1Memory` passed to `plan`, an object whose cloud is the same as when
         Stage 1 last ran on it, within this many metres (`pointcloud.same_cloud`), keeps those candidates
         and is only tested against the obstacles of now (`Stage1.rescene`). 0: only identical clouds.
@@ -141,6 +146,7 @@ class PlannerConfig:
     avoid_distance: float = gripper.AVOID_DISTANCE
     avoid_angle_deg: float = gripper.AVOID_ANGLE_DEG
     fallback_filter: FilterConfig | None = FALLBACK_FILTER
+    fallback_match: MatchConfig | None = None
     reuse_tolerance: float = 0.0005
 
     def __post_init__(self):
@@ -163,6 +169,8 @@ class PlannerConfig:
         if self.avoid_distance < 0 or not 0 <= self.avoid_angle_deg <= 180:
             raise ValueError(f"avoid_distance must be >= 0 and avoid_angle_deg in [0, 180], got "
                              f"{self.avoid_distance} and {self.avoid_angle_deg}")
+        if self.fallback_match is not None and self.fallback_filter is None:
+            raise ValueError("fallback_match is the second plan's matching: it needs a fallback_filter (the second plan)")
         check_thresholds(self)
 
     @property
@@ -535,11 +543,12 @@ class Planner:
         return plan
 
     def _fallback_stage(self) -> Stage1 | None:
-        """Stage 1 with `config.fallback_filter` (built once per Stage-1 config), or None without one."""
+        """Stage 1 with `config.fallback_filter` (and `fallback_match` when set; built once per Stage-1
+        config), or None without a fallback filter."""
         cfg = self.config
         if cfg.fallback_filter is None:
             return None
-        stage_cfg = dataclasses.replace(cfg.stage1, filter=cfg.fallback_filter)
+        stage_cfg = dataclasses.replace(cfg.stage1, filter=cfg.fallback_filter, match=cfg.fallback_match or cfg.stage1.match)
         if stage_cfg not in self._fallback_stages:
             self._fallback_stages[stage_cfg] = Stage1(self.stage1.db, stage_cfg, share=self.stage1)
         return self._fallback_stages[stage_cfg]
