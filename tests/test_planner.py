@@ -385,6 +385,19 @@ def test_fallback_filter_plans_again_only_when_nothing_was_found(small_db, scene
     assert none.kind is None and not none.fallback
     assert none.reason.startswith("no candidates: ") and "; with the fallback filter: no candidates: " in none.reason
     assert "fewer than 5000 points between the fingers" in none.reason
+    # fallback_match: the second plan also matches the fit's relabelled axes (its own Stage 1, the
+    # paper's K2 matches first, the relabelled ones after them); the first plan's matching is untouched.
+    from sgjax.stage1.matching import MatchConfig
+
+    relabel = MatchConfig(relabel_extra=5)
+    wider = Planner(strong, small_db, dataclasses.replace(CONFIG, stage1=starved, fallback_filter=FilterConfig(), fallback_match=relabel))
+    plan = wider.plan(*scene, viewpoint=CAMERA)
+    assert plan.ok and plan.fallback and wider.stage1.config.match == CONFIG.stage1.match
+    assert wider._fallback_stage().config.match == relabel and wider._fallback_stage().config.filter == FilterConfig()
+    ranks = np.concatenate([c.match_rank for c in plan.candidates])
+    assert plan.n_candidates > plain.n_candidates and (ranks >= relabel.K2).any() and (ranks < relabel.K2).any()
+    with pytest.raises(ValueError, match="fallback_match .* needs a fallback_filter"):
+        dataclasses.replace(CONFIG, fallback_filter=None, fallback_match=relabel)
 
 
 @pytest.mark.parametrize(
