@@ -60,3 +60,38 @@ def test_judge_per_source_collisions_refinement_and_top_grasp():
     assert b["top1_success"] == pytest.approx(0.5)  # scene 5: its 0.8 succeeds; scene 6: its 0.7 fails
     assert out["per_source"]["c"]["auc"] is None and out["per_source"]["a"]["positive_rate"] == pytest.approx(2 / 3)
     assert out["refine_auc"] == [None, None, None]  # constant labels: undefined
+
+
+def test_scene_intervals_resample_whole_scenes():
+    """scene_interval: constant scenes give a point; independent scenes give about the binomial width;
+    scenes whose samples all agree are one observation each, so the interval is as wide as their count
+    allows, not as the sample count suggests."""
+    from train.judgement import scene_interval, top_success
+
+    rng = np.random.default_rng(0)
+    # Every scene the same: every draw gives the same value.
+    scene = np.repeat(np.arange(50), 4)
+    score = np.tile([0.9, 0.1, 0.8, 0.2], 50)
+    label = np.tile([1, 0, 1, 0], 50)
+    assert scene_interval(lambda s, y, g: roc_auc(s, y), score, label, scene, 200) == [1.0, 1.0]
+    # 400 scenes, the top grasp succeeding in half: about 0.5 +- 1.96 * sqrt(0.25 / 400) = +- 0.049.
+    scene = np.repeat(np.arange(400), 3)
+    score = rng.uniform(size=1200)
+    label = rng.uniform(size=1200) < 0.5
+    point = top_success(score, label, scene)
+    lo, hi = scene_interval(top_success, score, label, scene, 500)
+    assert lo < point < hi and 0.07 < hi - lo < 0.13
+    # Clustered: 40 scenes of 30 samples sharing one label. Resampling samples would give a width of
+    # ~0.05; by scene it is ~2 * 1.96 * sqrt(0.25 / 40) = 0.31.
+    scene = np.repeat(np.arange(40), 30)
+    label = np.repeat(rng.uniform(size=40) < 0.5, 30)
+    score = label + rng.normal(0, 2.0, 1200)
+    lo, hi = scene_interval(lambda s, y, g: float(np.mean(y)), score, label, scene, 500)
+    assert hi - lo > 0.2
+    # The judgement carries them, overall and per source; none without resamples.
+    source = rng.integers(0, 2, 1200)
+    out = judge(score, label, scene=scene, source=source, source_names=("a", "b"), top_source=None, resamples=200)
+    assert out["auc_interval"][0] <= out["auc"] <= out["auc_interval"][1]
+    assert out["top1_interval"][0] <= out["top1_success"] <= out["top1_interval"][1]
+    assert out["per_source"]["a"]["auc_interval"] is not None
+    assert "auc_interval" not in judge(score, label, scene=scene)

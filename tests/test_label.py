@@ -259,7 +259,9 @@ def test_train_and_judge_on_labelled_scenes(whole, tmp_path, capsys):
     assert "| held out objects |" in printed and "| source stage1 |" in printed
     assert main(["score-data", "--data", str(out), "--model", str(tmp_path / "run"), "--json"]) == 0
     keys = json.loads(capsys.readouterr().out)
-    assert {"auc", "per_source", "ece", "top1_success", "random_success"} <= set(keys)
+    assert {"auc", "per_source", "ece", "top1_success", "random_success", "auc_interval", "top1_interval"} <= set(keys)
+    assert keys["auc_interval"] is None or keys["auc_interval"][0] <= keys["auc"] <= keys["auc_interval"][1]
+    assert main(["score-data", "--data", str(out), "--model", str(tmp_path / "run"), "--resamples", "-1"]) != 0
     assert main(["score-data", "--data", str(tmp_path / "nowhere"), "--model", str(tmp_path / "run")]) != 0
     # --held-out: only the scenes a run with that split holds out, and the held-out objects. Scene 0 holds
     # only held-out objects here, so a split that holds out scene 1 keeps every seen sample, one that

@@ -13,11 +13,13 @@ Computed by `sgjax train` on the held-out scenes and the held-out objects after 
   top1_success        per scene, the Stage-1 grasp with the highest score: the share that succeed
   random_success      per scene, a Stage-1 grasp picked at random: the expected share that succeed
   mean_score / positive_rate: the scorer's mean against the actual success rate
+  auc_interval, top1_interval   (with `resamples` > 0) 95 % intervals of auc and top1_success by
+                      resampling scenes with replacement (samples of a scene are not independent)
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -79,6 +81,38 @@ def random_success(label: np.ndarray, group: np.ndarray) -> float | None:
     return float(np.mean([label[group == g].mean() for g in np.unique(group)]))
 
 
+def scene_interval(
+    metric: Callable[[np.ndarray, np.ndarray, np.ndarray], float | None],
+    score: np.ndarray,
+    label: np.ndarray,
+    scene: np.ndarray,
+    resamples: int = 1000,
+    seed: int = 0,
+    level: float = 0.95,
+) -> list[float] | None:
+    """[lo, hi]: the central `level` interval of metric(score, label, group) over `resamples` draws of
+    the scenes with replacement (a scene drawn twice enters as two groups); None without scenes or when
+    the metric is undefined in most draws. score, label, scene [N]."""
+    scene = np.asarray(scene)
+    ids, group = np.unique(scene, return_inverse=True)
+    if len(ids) == 0 or resamples < 1:
+        return None
+    members = [np.flatnonzero(group == g) for g in range(len(ids))]
+    rng = np.random.default_rng(seed)
+    values = []
+    for _ in range(resamples):
+        drawn = rng.integers(0, len(ids), len(ids))
+        index = np.concatenate([members[g] for g in drawn])
+        relabelled = np.repeat(np.arange(len(drawn)), [len(members[g]) for g in drawn])
+        value = metric(score[index], label[index], relabelled)
+        if value is not None:
+            values.append(value)
+    if len(values) < resamples / 2:
+        return None
+    tail = 50.0 * (1.0 - level)
+    return [float(np.percentile(values, tail)), float(np.percentile(values, 100.0 - tail))]
+
+
 def judge(
     score: np.ndarray,
     label: np.ndarray,
@@ -91,11 +125,13 @@ def judge(
     source_names: Sequence[str] = (),
     top_source: int | None = 0,
     bins: int = 10,
+    resamples: int = 0,
 ) -> dict:
     """Every metric of the module docstring for scores [N] against labels [N]; the optional columns
     ([N] each, refine_* [N, K]) enable their metrics. top_source: the source whose grasps compete per
     scene in top1_success and random_success (0: Stage 1 as planned; None: all). per_source judges each
-    source's samples alone (its own grasps competing per scene)."""
+    source's samples alone (its own grasps competing per scene). resamples > 0 (needs `scene`): also the
+    scene-resampled intervals auc_interval and top1_interval (`scene_interval`)."""
     score = np.asarray(score, np.float64)
     label = np.asarray(label).astype(bool)
     ece, table = reliability(score, label, bins)
@@ -117,7 +153,7 @@ def judge(
         per_source = {
             names[s]: judge(score[rows], label[rows], outcome=part(rows, outcome), scene=part(rows, scene),
                             refine_score=part(rows, refine_score), refine_label=part(rows, refine_label),
-                            top_source=None, bins=bins)
+                            top_source=None, bins=bins, resamples=resamples)
             for s in np.unique(source) if s < len(names) for rows in [source == s]
         }
         # The compact views the training curves and tables read, taken from the per-source judgement.
@@ -131,6 +167,9 @@ def judge(
         rows = np.ones(len(score), bool) if top_source is None or source is None else source == top_source
         out["top1_success"] = top_success(score[rows], label[rows], np.asarray(scene)[rows])
         out["random_success"] = random_success(label[rows], np.asarray(scene)[rows])
+        if resamples > 0:
+            out["auc_interval"] = scene_interval(lambda s, y, g: roc_auc(s, y), score, label, scene, resamples)
+            out["top1_interval"] = scene_interval(top_success, score[rows], label[rows], np.asarray(scene)[rows], resamples)
     if refine_score is not None and refine_label is not None:
         refine_score, refine_label = np.asarray(refine_score), np.asarray(refine_label)
         out["refine_auc"] = [roc_auc(refine_score[:, k], refine_label[:, k]) for k in range(refine_score.shape[1])]

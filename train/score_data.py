@@ -36,18 +36,23 @@ def load_scorer(model: str | os.PathLike | None, network: str = "ernet"):
 
 
 def score_directory(data: str | os.PathLike | Sequence[str | os.PathLike], model=None, network: str = "ernet",
-                    batch_size: int = 128, held_out: float | None = None, seed: int = 0) -> dict[str, Any]:
+                    batch_size: int = 128, held_out: float | None = None, seed: int = 0,
+                    resamples: int = 1000) -> dict[str, Any]:
     """Judge a scorer on every valid sample of a labelled directory (or several, of disjoint scenes).
 
     held_out: judge only the scenes that a `sgjax train` run with this held-out fraction and `seed` holds
     out of these directories (`dataset.split_by_scene`, a hash per scene, so the same scenes whatever
     other directories a run read), and the held-out objects: runs trained on different data are then
     compared on scenes none of them trained on. None: every sample.
+    resamples: scene draws behind the 95 % intervals of AUC and of the top grasp's success
+    ("auc_interval", "top1_interval", also per source; 0: none).
 
     -> the judgement of all samples (`train.judgement.judge`: "auc", "per_source" {name: {"auc", ...}},
     "ece", "top1_success", "random_success", ...) plus "classifier" (the summed metrics at the
     threshold: accuracy, precision, recall) and the judgement of two groups, "held_out_objects" and
     "seen_objects" (None when empty)."""
+    if resamples < 0:
+        raise ValueError(f"resamples must be >= 0, got {resamples}")
     scorer, make_steps = load_scorer(model, network)
     config = trainer.TrainConfig(model=scorer.config, batch_size=batch_size)
     samples = dataset.read_shards(data, getattr(scorer.config, "crop", "enlarged"))
@@ -70,7 +75,7 @@ def score_directory(data: str | os.PathLike | Sequence[str | os.PathLike], model
     scored: dict[str, Any] = {}
     for name, rows in groups.items():
         part = {k: samples[k][rows] for k in trainer.EVAL_FIELDS}
-        scored[name] = trainer.evaluate_params(eval_step, params, part, batch_size, key) if rows.any() else None
+        scored[name] = trainer.evaluate_params(eval_step, params, part, batch_size, key, resamples=resamples) if rows.any() else None
     overall = scored.pop("all")
     judged = overall.pop("judgement")
     return {**judged, "classifier": overall, **{name: (m or {}).get("judgement") for name, m in scored.items()}}
@@ -81,12 +86,17 @@ def report_table(result: dict[str, Any]) -> str:
     def f(v, digits=3):
         return "–" if v is None else f"{v:.{digits}f}"
 
+    def with_interval(m, name):
+        interval = m.get(f"{name}_interval")
+        value = m.get("auc" if name == "auc" else "top1_success")
+        return f(value) if not interval else f"{f(value)} ({f(interval[0])}–{f(interval[1])})"
+
     rows = [("all", result)] + [(f"source {name}", m) for name, m in (result.get("per_source") or {}).items()]
     rows += [(name.replace("_", " "), result.get(name)) for name in ("seen_objects", "held_out_objects") if result.get(name)]
     lines = ["| samples | n | positive rate | AUC | refine AUC | ECE | collisions' mean score | top Stage-1 grasp succeeds | random one |",
              "|---|---:|---:|---:|---|---:|---:|---:|---:|"]
     for name, m in rows:
         refine = "/".join(f(v) for v in m.get("refine_auc") or []) or "–"
-        lines.append(f"| {name} | {m['samples']} | {f(m.get('positive_rate'))} | {f(m.get('auc'))} | {refine} | {f(m.get('ece'))} "
-                     f"| {f(m.get('collision_score'))} | {f(m.get('top1_success'))} | {f(m.get('random_success'))} |")
+        lines.append(f"| {name} | {m['samples']} | {f(m.get('positive_rate'))} | {with_interval(m, 'auc')} | {refine} | {f(m.get('ece'))} "
+                     f"| {f(m.get('collision_score'))} | {with_interval(m, 'top1')} | {f(m.get('random_success'))} |")
     return "\n".join(lines)

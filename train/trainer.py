@@ -691,6 +691,7 @@ def evaluate_params(
     batch_size: int,
     key,
     sharding: jax.sharding.Sharding | None = None,
+    resamples: int = 0,
 ) -> dict[str, Any]:
     """Metrics of `params` on preloaded columns (fixed-size padded batches, no noise): the summed
     classifier metrics (`summarise`) and, when the step gives per-sample scores, the judgement metrics
@@ -698,7 +699,8 @@ def evaluate_params(
     the top-scored grasp per scene) under "judgement".
 
     sharding: where each batch [batch_size, ...] goes, as the training batches (`Placement.batch`; with
-    replicated `params` the evaluation runs data-parallel too); None: the default device."""
+    replicated `params` the evaluation runs data-parallel too); None: the default device.
+    resamples: > 0 adds scene-resampled intervals to the judgement (`train.judgement.scene_interval`)."""
     totals, parts = None, []
     n = len(samples["label"])
     for i, (index, weight) in enumerate(dataset.batch_indices(n, batch_size, None)):
@@ -711,11 +713,11 @@ def evaluate_params(
     metrics = summarise(totals)
     if parts:
         per = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
-        metrics["judgement"] = judge_samples(per, samples)
+        metrics["judgement"] = judge_samples(per, samples, resamples)
     return metrics
 
 
-def judge_samples(per: Mapping[str, np.ndarray], samples: Mapping[str, np.ndarray]) -> dict[str, Any]:
+def judge_samples(per: Mapping[str, np.ndarray], samples: Mapping[str, np.ndarray], resamples: int = 0) -> dict[str, Any]:
     """`train.judgement.judge` of per-sample scores over the samples they scored (weight > 0: those
     with an anchor feature)."""
     from train.judgement import judge
@@ -733,6 +735,7 @@ def judge_samples(per: Mapping[str, np.ndarray], samples: Mapping[str, np.ndarra
         refine_score=None if refine is None else refine[rows],
         refine_label=None if refine is None else np.asarray(samples["refine_labels"])[rows],
         source_names=SOURCES,
+        resamples=resamples,
     )
 
 
