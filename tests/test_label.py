@@ -275,3 +275,25 @@ def test_train_and_judge_on_labelled_scenes(whole, tmp_path, capsys):
         assert part["held_out_objects"]["samples"] == objects["samples"]
         assert (part["seen_objects"] or {}).get("samples", 0) == int((held_in(seed) & seen).sum()) == (seen.sum() if wanted else 0)
     assert main(["score-data", "--data", str(out), "--model", str(tmp_path / "run"), "--held-out", "0.5", "--seed", str(seed)]) == 0
+
+
+def test_a_labelled_directory_replays_to_its_recorded_outcomes(setup, whole):
+    from train.label import labelled_scene, read_config
+    from train.repeatability import replay_directory, table
+
+    objects, _ = setup
+    assert read_config(whole[0]) == CONFIG  # the config back from label_config.json, nested ones included
+    scene, _ = labelled_scene(0, objects, CONFIG)
+    stored = dataset.read_label_shard(whole[0] / "scenes-000000-000002.npz")[0]
+    stored = {k: v[stored["scene_index"] == 0] for k, v in stored.items()}
+    assert sorted(stored["object_name"]) and set(stored["object_name"]) <= {a.name for a in scene.assets}
+    # The simulator replays every recorded grasp to its outcome; moved grasps are real trials too.
+    out = replay_directory(str(whole[0]), (0, 1), tuple(sources.SOURCES[:2]), moves=1, shift=0.002, turn_deg=2.0, progress=False)
+    valid = stored["valid"] & (stored["source"] < 2)
+    assert len(out["label"]) == valid.sum() > 0
+    np.testing.assert_array_equal(out["replayed"], out["outcome"])
+    np.testing.assert_array_equal(out["outcome"], stored["outcome"][valid])
+    assert out["moved"].shape == (valid.sum(), 1) and (out["moved"] >= 0).all()
+    assert "same pose reproduces" in table(out, 1, 0.002, 2.0)
+    with pytest.raises(ValueError, match="moves"):
+        replay_directory(str(whole[0]), moves=-1)

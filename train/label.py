@@ -50,6 +50,7 @@ from sgjax.geometry.gripper import GripperSpec
 from sgjax.samplers.gpd import GPDConfig
 from sgjax.stage1.pipeline import Stage1, Stage1Config
 from sgjax.stage2.scene_cloud import SceneCloudConfig
+from sgjax.utils.configs import from_dict
 from sgjax.utils.files import atomic_write_text
 from train import dataset, sources
 
@@ -137,6 +138,20 @@ class LabelConfig:
 
     def to_json(self) -> str:
         return json.dumps(dataclasses.asdict(self), sort_keys=True, default=str)
+
+    @classmethod
+    def from_json(cls, text: str) -> LabelConfig:
+        """The config `to_json` wrote (ValueError naming a field this version does not know)."""
+        return from_dict(cls, json.loads(text))
+
+
+def read_config(out_dir: str | os.PathLike) -> LabelConfig:
+    """The LabelConfig a labelled directory was made with (its label_config.json)."""
+    path = os.path.join(os.fspath(out_dir), CONFIG_FILE)
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"{path} not found: not a labelled directory (sgjax label --out)")
+    with open(path) as fh:
+        return LabelConfig.from_json(fh.read())
 
 
 @dataclasses.dataclass
@@ -313,20 +328,29 @@ def _no_samples() -> tuple[dict[str, np.ndarray], np.ndarray]:
     return dataset.empty_labels(), np.zeros((0, 3), np.float32)
 
 
+def labelled_scene(index: int, objects: Sequence, config: LabelConfig) -> tuple[scene_lib.Scene, np.random.Generator]:
+    """Scene `index` of a labelling run, rebuilt exactly (it depends only on the config, the objects
+    and the index) -> (the settled scene, the scene's random generator as labelling goes on with it).
+    Its samples' grasps replay on it to their recorded outcomes (`benchmarks/label_repeatability.py`).
+    Raises ValueError when a mesh cannot be loaded."""
+    seed = scene_seed(config.seed, index)
+    rng = np.random.default_rng(seed)
+    pool, n_objects = scene_objects(index, objects, config, rng)
+    return scene_lib.make_scene(pool, n_objects, seed, config.scene, config.spec), rng
+
+
 def label_scene(
     index: int, objects: Sequence, labellers: Labellers, config: LabelConfig, backend: str = "cpu", nthread: int = 0
 ) -> tuple[dict[str, np.ndarray], np.ndarray, dict]:
     """Scene `index` -> (samples: fields of LABEL_FIELDS [S, ...] (cloud_row 0), its Stage-2 cloud
     [C, 3] (the real points, shuffled), statistics)."""
     seed = scene_seed(config.seed, index)
-    rng = np.random.default_rng(seed)
     held_scene = config.held_out_scene(index)
     stats = {"scene": index, "scene_seed": seed, "trials": 0, "outcomes": {}, "skipped": None, "held_out_objects": held_scene}
     timing = stats["seconds"] = {}
     began = time.perf_counter()
-    pool, n_objects = scene_objects(index, objects, config, rng)
     try:
-        scene = scene_lib.make_scene(pool, n_objects, seed, config.scene, config.spec)
+        scene, rng = labelled_scene(index, objects, config)
     except ValueError as exc:  # an unloadable mesh; recorded, the run goes on
         stats["skipped"] = f"scene failed: {exc}"
         return (*_no_samples(), stats)
