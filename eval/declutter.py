@@ -39,6 +39,7 @@ import numpy as np
 from envs import camera as camera_lib
 from envs import scene as scene_lib
 from envs import trial as trial_lib
+from eval.numerics import numerics_label
 from eval.protocol import Decision, Method
 from sgjax.geometry.gripper import GripperSpec
 
@@ -186,7 +187,7 @@ def run_scene(
 
     log: {"version", "method", "setting", "seed", "scene_index", "scene_seed", "n_objects",
     "objects" (on the table after settling), "object_names", "at_rest", "attempts" [...], "end",
-    "final_reason", "final_timing", "fell_out", "remaining", "memory", "wall_s"}; each attempt:
+    "final_reason", "final_timing", "fell_out", "remaining", "memory", "wall_s", "numerics"}; each attempt:
     {"attempt", "target", "target_name", "outcome", "success", "score", "width", "pose" [4][4],
     "points_in_gripper" {object: count}, "timing" {stage1_s, stage2_s, total_s}, "plan_seed",
     "avoided" (failed poses handed to the method), "observe_s", "trial_s", "settle_s" (the scene's update
@@ -297,5 +298,6 @@ def run_scene(
         "remaining": int(scene.present.sum()),
         "memory": memory,
         "wall_s": time.perf_counter() - start,
+        "numerics": numerics_label(),
     }
     return SceneRun(log, first)

@@ -146,6 +146,15 @@ def objects_markdown(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def numerics_markdown(logs: Iterable[Mapping]) -> str:
+    """One line per setting and numerics label (`eval.numerics.numerics_label`) with its scene count;
+    logs written before the label was recorded count as "not recorded"."""
+    counts: dict[tuple[str, str], int] = defaultdict(int)
+    for log in logs:
+        counts[(log["setting"], log.get("numerics") or "not recorded")] += 1
+    return "\n".join(f"- {setting}: {label} ({n} scenes)" for (setting, label), n in sorted(counts.items())) or "- no scenes"
+
+
 def percent(value: float | None) -> str:
     return "–" if value is None or (isinstance(value, float) and math.isnan(value)) else f"{100 * value:.2f}%"
 
@@ -265,6 +274,9 @@ def write_tables(out: str | os.PathLike, machine: str = "") -> dict[str, Path]:
         f"{table_i_markdown(rows)}\n\n"
         "Objects (a hash over the member names: equal hashes, equal objects):\n\n"
         f"{objects_markdown(rows)}\n\n"
+        "Numerics (vector ISA and versions the rounding depends on: scenes repeat attempt for attempt "
+        "only under equal lines; `eval/numerics.py`):\n\n"
+        f"{numerics_markdown(logs)}\n\n"
         f"## Planning time per grasp (Table III style{note})\n\n"
         "Mean ± std over the executed grasps' plan calls (wall seconds; JIT compilation excluded: a "
         "warm-up call before the first scene, and plan calls that compiled are left out).\n\n"

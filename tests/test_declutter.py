@@ -13,6 +13,7 @@ import pytest
 from envs.camera import CameraConfig
 from envs.objects import tiny_object_set
 from eval import declutter, metrics, report
+from eval.numerics import numerics_label, vector_isa
 from eval.benchmark import run_benchmark, run_key
 from eval.declutter import DeclutterConfig, run_scene
 from eval.methods import METHODS, MethodUnavailable, UnknownMethod, make_method
@@ -343,6 +344,9 @@ def test_benchmark_resumes_and_writes_tables_and_pictures(tmp_path, objects):
     assert f"tiny-2: object set `tiny`, {len(objects)} objects, names hash `{identity['hash']}`" in (
         tmp_path / "results.md").read_text()
     assert f",tiny,{len(objects)},{identity['hash']}," in csv_text
+    # ... and which numerics (vector ISA, versions) its outcomes repeat under.
+    assert second.logs[0]["numerics"] == numerics_label()
+    assert f"- tiny-2: {numerics_label()} (2 scenes)" in (tmp_path / "results.md").read_text()
     assert second.as_dict()["GA"] == second.summary.attempts
     # A log written under other settings is not silently reused.
     with pytest.raises(ValueError, match="different configuration"):
@@ -460,3 +464,13 @@ def test_contact_graspnet_runs_a_tiny_scene(objects):
         assert a["info"]["grasps"] >= 1 and 0.5 <= a["score"] <= 1.0
     if not log_["attempts"]:
         assert "no grasp above confidence" in log_["final_reason"]
+
+
+def test_vector_isa_is_the_cpus_widest_capped_by_xla_flags():
+    avx512 = {"sse4_2", "avx", "avx2", "avx512f"}
+    assert vector_isa(avx512, "") == "AVX512"
+    assert vector_isa(avx512, "--xla_cpu_max_isa=AVX2 --other") == "AVX2"
+    assert vector_isa({"sse4_2", "avx", "avx2"}, "--xla_cpu_max_isa=AVX512") == "AVX2"  # a cap cannot widen
+    assert vector_isa({"sse4_2"}, "") == "SSE4_2"
+    label = numerics_label()
+    assert "jaxlib" in label and "mujoco" in label
