@@ -54,6 +54,8 @@ def test_judge_per_source_collisions_refinement_and_top_grasp():
     # A random source-0 grasp: scene 5 has 1 of 2 succeeding, scene 6 1 of 1.
     assert out["random_success"] == pytest.approx((0.5 + 1.0) / 2)
     assert random_success(label, scene) == pytest.approx((2 / 3 + 1 / 3) / 2)
+    # Source 0 competes with 2 grasps in scene 5 and 1 in scene 6.
+    assert out["top1_scenes"] == 2 and out["top1_per_scene"] == pytest.approx(1.5)
     # Per source, every metric on that source's samples alone.
     b = out["per_source"]["b"]
     assert b["samples"] == 2 and b["auc"] == 1.0 and b["collision_score"] == pytest.approx(0.7)

@@ -257,6 +257,7 @@ def test_train_and_judge_on_labelled_scenes(whole, tmp_path, capsys):
     assert main(["score-data", "--data", str(out), "--model", str(tmp_path / "run")]) == 0
     printed = capsys.readouterr().out
     assert "| held out objects |" in printed and "| source stage1 |" in printed
+    assert f"top Stage-1 grasp of each of {scored['top1_scenes']} scenes is picked among {scored['top1_per_scene']:.1f}" in printed
     assert main(["score-data", "--data", str(out), "--model", str(tmp_path / "run"), "--json"]) == 0
     keys = json.loads(capsys.readouterr().out)
     assert {"auc", "per_source", "ece", "top1_success", "random_success", "auc_interval", "top1_interval"} <= set(keys)

@@ -12,6 +12,7 @@ Computed by `sgjax train` on the held-out scenes and the held-out objects after 
   refine_auc          ROC AUC of each refinement head against its variant's label
   top1_success        per scene, the Stage-1 grasp with the highest score: the share that succeed
   random_success      per scene, a Stage-1 grasp picked at random: the expected share that succeed
+  top1_scenes, top1_per_scene   the scenes behind both, and the mean Stage-1 samples competing per scene
   mean_score / positive_rate: the scorer's mean against the actual success rate
   auc_interval, top1_interval   (with `resamples` > 0) 95 % intervals of auc and top1_success by
                       resampling scenes with replacement (samples of a scene are not independent)
@@ -176,6 +177,10 @@ def judge(
         rows = np.ones(len(score), bool) if top_source is None or source is None else source == top_source
         out["top1_success"] = top_success(score[rows], label[rows], np.asarray(scene)[rows])
         out["random_success"] = random_success(label[rows], np.asarray(scene)[rows])
+        # How many grasps compete per scene: the top pick's success rises with it (docs/stage2.md).
+        competing = np.unique(np.asarray(scene)[rows], return_counts=True)[1]
+        out["top1_scenes"] = int(len(competing))
+        out["top1_per_scene"] = float(competing.mean()) if len(competing) else None
         if resamples > 0:
             out["auc_interval"] = scene_interval(lambda s, y, g: roc_auc(s, y), score, label, scene, resamples)
             out["top1_interval"] = scene_interval(top_success, score[rows], label[rows], np.asarray(scene)[rows], resamples)

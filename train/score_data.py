@@ -99,4 +99,7 @@ def report_table(result: dict[str, Any]) -> str:
         refine = "/".join(f(v) for v in m.get("refine_auc") or []) or "–"
         lines.append(f"| {name} | {m['samples']} | {f(m.get('positive_rate'))} | {with_interval(m, 'auc')} | {refine} | {f(m.get('ece'))} "
                      f"| {f(m.get('collision_score'))} | {with_interval(m, 'top1')} | {f(m.get('random_success'))} |")
+    if result.get("top1_per_scene"):
+        lines += ["", f"The top Stage-1 grasp of each of {result['top1_scenes']} scenes is picked among "
+                      f"{result['top1_per_scene']:.1f} Stage-1 samples on average; its success rises with that number."]
     return "\n".join(lines)
