@@ -82,6 +82,26 @@ def summarize(logs: Iterable[Mapping]) -> Summary:
     return Summary(scenes, objects, successes, attempts, cleared, rate(successes, attempts), rate(successes, objects))
 
 
+def scene_intervals(logs: Iterable[Mapping], resamples: int = 1000, seed: int = 0,
+                    level: float = 0.95) -> dict[str, tuple[float, float] | None]:
+    """{"GSR": (lo, hi), "TSR": (lo, hi)}: the central `level` intervals of GSR and TSR over `resamples`
+    draws of the scenes with replacement (the scene is the unit: its attempts are not independent).
+    A rate undefined in some draws (no attempts) is taken over the draws that define it; None when no
+    draw does or there are no scenes. Deterministic for a seed."""
+    counts = np.array([scene_counts(log) for log in logs], np.int64).reshape(-1, 3)  # objects, successes, attempts
+    if len(counts) == 0 or resamples < 1:
+        return {"GSR": None, "TSR": None}
+    draws = np.random.default_rng(seed).integers(0, len(counts), (resamples, len(counts)))
+    objects, successes, attempts = (counts[:, k][draws].sum(1) for k in range(3))
+    tail = 50.0 * (1.0 - level)
+    out = {}
+    for name, denominator in (("GSR", attempts), ("TSR", objects)):
+        defined = denominator > 0
+        values = successes[defined] / denominator[defined]
+        out[name] = (float(np.percentile(values, tail)), float(np.percentile(values, 100 - tail))) if len(values) else None
+    return out
+
+
 def timing_summary(logs: Iterable[Mapping]) -> dict[str, tuple[float, float, int]]:
     """Mean, standard deviation and count of each timing key over the executed grasps' plan calls,
     leaving out calls that compiled a program (`info["compiled"]`: e.g. a method's first use of a

@@ -112,6 +112,8 @@ def result_rows(logs: Iterable[Mapping]) -> list[dict]:
         row = {"method": method, "setting": setting, "seed": seed, **summary.as_dict(), **_objects_columns(group)}
         for key, (mean, std, _) in timing.items():
             row[f"{key}_mean"], row[f"{key}_std"] = mean, std
+        for name, interval in metrics.scene_intervals(group).items():
+            row[f"{name}_lo"], row[f"{name}_hi"] = interval if interval else (None, None)
         rows.append(row)
     methods, settings = _method_order(r["method"] for r in rows), _setting_order(r["setting"] for r in rows)
     rows.sort(key=lambda r: (methods.index(r["method"]), settings.index(r["setting"]), r["seed"]))
@@ -185,6 +187,17 @@ def table_i_markdown(rows: list[dict]) -> str:
             cells += ["", "", "", ""] if r is None else [percent(r["GSR"]), percent(r["TSR"]), str(r["GA"]), str(r["scenes"])]
         body.append(cells)
     return markdown_table(head, body)
+
+
+def intervals_markdown(rows: list[dict]) -> str:
+    """GSR and TSR of each cell with its 95 % interval by resampling scenes (`metrics.scene_intervals`)."""
+    def cell(r, name):
+        if r.get(f"{name}_lo") is None:
+            return percent(r[name])
+        return f"{percent(r[name])} ({100 * r[f'{name}_lo']:.1f}–{100 * r[f'{name}_hi']:.1f})"
+
+    body = [[r["method"], r["setting"], str(r["seed"]), cell(r, "GSR"), cell(r, "TSR"), str(r["scenes"])] for r in rows]
+    return markdown_table(["Method", "Setting", "Seed", "GSR (95 % interval)", "TSR (95 % interval)", "N"], body)
 
 
 def timing_rows(logs: Iterable[Mapping]) -> list[dict]:
@@ -274,6 +287,10 @@ def write_tables(out: str | os.PathLike, machine: str = "") -> dict[str, Path]:
         f"{table_i_markdown(rows)}\n\n"
         "Objects (a hash over the member names: equal hashes, equal objects):\n\n"
         f"{objects_markdown(rows)}\n\n"
+        "95 % intervals by resampling the scenes of each cell (a scene's attempts are not independent; "
+        "the same code and seeds on a CPU with other vector instructions moves a cell by about as much, "
+        "docs/benchmark.md):\n\n"
+        f"{intervals_markdown(rows)}\n\n"
         "Numerics (vector ISA and versions the rounding depends on: scenes repeat attempt for attempt "
         "only under equal lines; `eval/numerics.py`):\n\n"
         f"{numerics_markdown(logs)}\n\n"

@@ -113,6 +113,24 @@ def test_metrics_are_ratios_of_totals_as_in_the_paper():
         metrics.summarize([log(2, "sss")])
 
 
+def test_scene_intervals_resample_whole_scenes():
+    # Scenes alike: every draw gives the same rates, the interval is the point.
+    same = metrics.scene_intervals([log(4, "ssf")] * 6)
+    assert same["GSR"] == pytest.approx((2 / 3, 2 / 3)) and same["TSR"] == pytest.approx((0.5, 0.5))
+    # Scenes that differ: the interval holds the estimate, stays within [0, 1], and repeats for a seed.
+    logs = [log(5, "sssss"), log(5, "sfsfs"), log(5, "ffsss"), log(5, "s"), log(5, "ssssf")] * 3
+    out = metrics.scene_intervals(logs)
+    summary = metrics.summarize(logs)
+    assert 0 <= out["GSR"][0] < summary.gsr < out["GSR"][1] <= 1 and out["TSR"][0] < summary.tsr < out["TSR"][1]
+    assert metrics.scene_intervals(logs) == out and metrics.scene_intervals(logs, seed=1) != out
+    # More scenes of the same kind: narrower.
+    wide, narrow = metrics.scene_intervals(logs[:5])["TSR"], metrics.scene_intervals(logs * 4)["TSR"]
+    assert narrow[1] - narrow[0] < wide[1] - wide[0]
+    # Undefined rates: no scenes, or no attempts in any draw.
+    assert metrics.scene_intervals([]) == {"GSR": None, "TSR": None}
+    assert metrics.scene_intervals([log(3, "")])["GSR"] is None
+
+
 def test_timing_summary_is_per_executed_grasp():
     times = metrics.timing_summary([log(3, "ssf"), log(1, "")])
     mean, std, n = times["total_s"]
@@ -347,6 +365,8 @@ def test_benchmark_resumes_and_writes_tables_and_pictures(tmp_path, objects):
     # ... and which numerics (vector ISA, versions) its outcomes repeat under.
     assert second.logs[0]["numerics"] == numerics_label()
     assert f"- tiny-2: {numerics_label()} (2 scenes)" in (tmp_path / "results.md").read_text()
+    assert "| oracle-topdown | tiny-2 | 0 |" in (tmp_path / "results.md").read_text()  # the intervals table
+    assert "GSR_lo,GSR_hi,TSR_lo,TSR_hi" in csv_text.splitlines()[0]
     assert second.as_dict()["GA"] == second.summary.attempts
     # A log written under other settings is not silently reused.
     with pytest.raises(ValueError, match="different configuration"):
