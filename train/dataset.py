@@ -42,6 +42,7 @@ import jax
 import numpy as np
 
 from sgjax.stage2.ernet import DEFAULT_SPEC
+from sgjax.utils.configs import from_dict
 from sgjax.utils.files import atomic_write
 from sgjax.geometry.gripper import GripperSpec
 
@@ -262,8 +263,8 @@ def directory_spec(directory: str | os.PathLike) -> GripperSpec:
     with open(path) as fh:
         saved = json.load(fh)
     try:
-        return GripperSpec(**saved["stage1"]["spec"])
-    except (KeyError, TypeError) as exc:
+        return from_dict(GripperSpec, saved["stage1"]["spec"])
+    except (KeyError, TypeError, ValueError) as exc:
         raise DatasetError(f"{path}: no readable stage1.spec ({exc})") from None
 
 
