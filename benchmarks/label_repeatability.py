@@ -18,6 +18,7 @@ import argparse
 import numpy as np
 
 from sgjax.utils.files import atomic_write
+from train.dataset import DatasetError
 from train.repeatability import replay_directory, table
 
 
@@ -36,8 +37,11 @@ def main() -> None:
     if args.scenes:
         first, last = (int(x) for x in args.scenes.split(":"))
         scenes = (first, last)
-    replayed = replay_directory(args.directory, scenes, tuple(args.sources.split(",")), args.moves, args.shift, args.turn,
-                                args.seed)
+    try:
+        replayed = replay_directory(args.directory, scenes, tuple(args.sources.split(",")), args.moves, args.shift,
+                                    args.turn, args.seed)
+    except (DatasetError, FileNotFoundError) as exc:
+        raise SystemExit(str(exc)) from None
     if args.out:
         atomic_write(args.out, lambda tmp: np.savez(tmp, **replayed))
     print(table(replayed, args.moves, args.shift, args.turn))

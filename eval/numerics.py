@@ -5,8 +5,9 @@ the CPU has (or `XLA_FLAGS=--xla_cpu_max_isa=...` allows). Different instruction
 the last bits; where a plan is near a tie (two candidates scored alike, a point on a filter's
 threshold) the choice changes, and a scene's later attempts differ from there on. Measured on unseen-10,
 N = 30 (docs/benchmark.md, "Same seeds, another CPU"): the same code and seeds compiled for AVX2 instead
-of AVX-512 gave GSR 92.91 % instead of 90.67 %, 28 of the 30 scenes taking another grasp at some point. Outcomes repeat attempt for attempt only between runs
-whose `numerics_label` is equal; the benchmark records it in every scene log and lists it in results.md.
+of AVX-512 gave GSR 92.91 % instead of 90.67 %, 28 of the 30 scenes taking another grasp at some point.
+Outcomes repeat attempt for attempt only between runs whose `numerics_label` is equal; the benchmark
+records it in every scene log and lists it in results.md.
 """
 
 from __future__ import annotations

@@ -14,7 +14,6 @@ so its grasps can be run again. Two questions, per candidate source:
 
 from __future__ import annotations
 
-import glob
 import os
 
 import numpy as np
@@ -40,9 +39,9 @@ def replay_directory(directory: str, scenes: tuple[int, int] | None = None, sour
     rng = np.random.default_rng(seed)
     ranges = sources.Perturbation(translation=(shift, shift), angle_deg=(turn_deg, turn_deg))
     columns: dict[str, list] = {k: [] for k in ("scene_seed", "source", "label", "outcome", "replayed", "moved")}
-    paths = sorted(glob.glob(os.path.join(directory, "scenes-*.npz")))
+    paths = dataset.shard_paths(directory)
     if not paths:
-        raise SystemExit(f"{directory}: no label shards")
+        raise dataset.DatasetError(f"{directory}: no label shards")
     for path in paths:
         samples, _ = dataset.read_label_shard(path)
         for index in np.unique(samples["scene_index"]):
@@ -66,7 +65,7 @@ def replay_directory(directory: str, scenes: tuple[int, int] | None = None, sour
         if progress:
             print(f"{os.path.basename(path)}: {sum(len(c) for c in columns['label'])} samples", flush=True)
     if not columns["label"]:
-        raise SystemExit(f"{directory}: no valid samples of {list(source_names)} in the chosen scenes")
+        raise dataset.DatasetError(f"{directory}: no valid samples of {list(source_names)} in the chosen scenes")
     return {k: np.concatenate(v) for k, v in columns.items()}
 
 
