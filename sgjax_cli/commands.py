@@ -171,6 +171,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
     hand = {"hand_points": args.hand_points} if args.hand_points else {}
     if hand and args.network != "ernet":
         return _fail("--hand-points is an E-RNet input; the PointNetGPD baseline sees its closing region only")
+    if args.rank_weight and args.network != "ernet":
+        return _fail("--rank-weight is an E-RNet loss; the PointNetGPD baseline trains with its own")
     if args.synthetic:
         if len(args.data) > 1:
             return _fail("--synthetic writes to one --data directory")
@@ -191,6 +193,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
             held_out_fraction=args.held_out,
             lr_decay_epochs=args.lr_decay_epochs,
             devices=args.devices,
+            rank_weight=args.rank_weight,
             model={"paper": network.paper, "light": network.light, "tiny": network.tiny}[args.model](**hand),
         )
         result = run(args.data, args.out, config, progress=not args.quiet, init=args.init)  # one directory or several
@@ -599,6 +602,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--hand-points", type=int, default=0, metavar="N",
         help="E-RNet also sees N points of the hand's swept volume (fingers, palm, the last 5 cm of the approach); "
         "0: the paper's input, the enlarged region only",
+    )
+    p.add_argument(
+        "--rank-weight", type=float, default=0.0, metavar="W",
+        help="add W x a within-scene ranking loss (each success should outscore each failure of its scene; "
+        "batches are then drawn scene by scene); 0: the paper's loss (default). E-RNet only",
     )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--synthetic", type=int, default=0, metavar="N", help="first write N synthetic samples to --data")

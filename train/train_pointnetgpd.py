@@ -97,6 +97,8 @@ def train(
     config = default_config() if config is None else config
     if not isinstance(config.model, PointNetGPDConfig):
         raise TypeError(f"config.model must be a PointNetGPDConfig, got {type(config.model).__name__}")
+    if config.rank_weight:
+        raise ValueError("rank_weight is an E-RNet loss; PointNetGPD trains with its own (set rank_weight=0)")
     if init is None:
         model = PointNetGPD(config.model, rngs=nnx.Rngs(config.seed))
     else:

@@ -50,6 +50,7 @@ from sgjax.stage2.ernet import (
     ERNetConfig,
     ernet_loss,
     load_model,
+    ranking_loss,
     prepare_inputs,
 )
 from sgjax.utils.files import atomic_write, atomic_write_text
@@ -73,6 +74,10 @@ class TrainConfig:
     lr_decay_epochs: the last N epochs lower the learning rate along a half cosine from `lr` to 0,
         step by step (a constant-then-decay schedule); 0 (default, the paper): constant `lr`. Like
         `epochs`, it only shapes the schedule's tail, so a resumed run may add or change it.
+    rank_weight: weight of a within-scene ranking loss on the evaluation logits added to the paper's
+        loss (`sgjax.stage2.ernet.ranking_loss`: every success should outscore every failure of its
+        scene); > 0 also draws the batches scene by scene (`dataset.scene_batch_indices`) so that a
+        batch holds pairs to rank. 0 (default, the paper): the paper's loss and shuffled batches.
     devices: data-parallel width: each batch is split over the first `devices` JAX devices (a mesh
         axis "data"), parameters and optimiser state are replicated; `batch_size` must be divisible
         by it. 1 (default): one device, as before. It changes where the step runs, not what it
@@ -90,6 +95,7 @@ class TrainConfig:
     prefetch: int = 4
     lr_decay_epochs: int = 0
     devices: int = 1
+    rank_weight: float = 0.0
     model: ERNetConfig = DEFAULT_MODEL
     spec: GripperSpec = DEFAULT_SPEC
 
@@ -102,6 +108,8 @@ class TrainConfig:
             raise ValueError("threshold must be in (0, 1)")
         if not 0 <= self.lr_decay_epochs <= self.epochs:
             raise ValueError(f"lr_decay_epochs must be in [0, epochs={self.epochs}], got {self.lr_decay_epochs}")
+        if not self.rank_weight >= 0:
+            raise ValueError(f"rank_weight must be >= 0, got {self.rank_weight}")
         if self.devices < 1:
             raise ValueError(f"devices must be >= 1, got {self.devices}")
         if self.batch_size % self.devices:
@@ -127,6 +135,8 @@ class TrainConfig:
         # before the setting existed keep their fingerprint.
         for name in ("epochs", "prefetch", "lr_decay_epochs", "devices"):
             d.pop(name)
+        if not self.rank_weight:  # runs written before the setting existed keep their fingerprint
+            d.pop("rank_weight")
         return json.loads(json.dumps(d))  # tuples -> lists, as stored in JSON
 
 
@@ -163,13 +173,16 @@ def _batch_stats(output, batch: dataset.Batch, weight, loss, parts, threshold: f
     stats = classification_stats(output.eval_prob, output.eval_logits, batch.label, weight, batch.weight, threshold)
     n = stats["n"]
     refine_ok = (output.refine_prob >= 0.5) == (batch.refine_labels == 1)
-    return {
+    out = {
         **stats,
         "loss": loss * n,
         "eval_loss": parts["eval"] * n,
         "refine_loss": parts["refine"] * n,
         "refine_correct": jnp.sum(weight[:, None] * refine_ok, axis=0),
     }
+    if "rank" in parts:
+        out["rank_loss"] = parts["rank"] * n
+    return out
 
 
 def step_config(config: TrainConfig) -> TrainConfig:
@@ -238,6 +251,9 @@ def make_steps(graphdef: nnx.GraphDef, config: TrainConfig):
         weight = batch.weight * inputs.valid
         output = model(inputs)
         loss, parts = ernet_loss(output, batch.label, batch.refine_labels, model_config, weight)
+        if config.rank_weight:
+            parts = {**parts, "rank": ranking_loss(output.eval_logits, batch.label, batch.group, weight)}
+            loss = loss + config.rank_weight * parts["rank"]
         return loss, (output, parts, weight)
 
     def stats(batch, loss, aux):
@@ -266,6 +282,7 @@ def summarise(stats: Mapping[str, Any]) -> dict[str, Any]:
         "loss": ratio(s["loss"], n),
         "eval_loss": ratio(s["eval_loss"], n),
         "refine_loss": ratio(s["refine_loss"], n) if "refine_loss" in s else None,
+        **({"rank_loss": ratio(s["rank_loss"], n)} if "rank_loss" in s else {}),
         "accuracy": ratio(s["correct"], n),
         "precision": ratio(s["tp"], s["tp"] + s["fp"]),
         "recall": ratio(s["tp"], s["tp"] + s["fn"]),
@@ -501,7 +518,7 @@ def _checkpoint_manager(run_dir: str):
     return ocp.CheckpointManager(os.path.abspath(os.path.join(run_dir, CHECKPOINT_DIR)), options=options)
 
 
-EVAL_FIELDS = (*dataset.TRAIN_FIELDS, "source", "outcome", "scene_seed")  # what the judgement metrics need
+EVAL_FIELDS = (*dataset.TRAIN_FIELDS, "source", "outcome")  # what the judgement metrics need
 
 
 def _load_data(data: str | os.PathLike | Sequence[str | os.PathLike] | Mapping[str, np.ndarray], config: TrainConfig):
@@ -630,7 +647,11 @@ def run_training(
         for epoch in range(start, config.epochs):
             epoch_key = jax.random.fold_in(base_key, epoch)
             rng = np.random.default_rng([config.seed, epoch])
-            loader = Prefetcher(train_set, dataset.batch_indices(n_train, config.batch_size, rng), config.prefetch, placement.batch)
+            if config.rank_weight:
+                batches = dataset.scene_batch_indices(train_set["scene_seed"], config.batch_size, rng)
+            else:
+                batches = dataset.batch_indices(n_train, config.batch_size, rng)
+            loader = Prefetcher(train_set, batches, config.prefetch, placement.batch)
             totals = None
             bar = tqdm(total=n_batches, desc=f"epoch {epoch + 1}/{config.epochs}", disable=not progress, leave=False)
             try:

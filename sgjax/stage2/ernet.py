@@ -421,6 +421,23 @@ def refinement_loss(logits: jax.Array, labels: jax.Array, weights: jax.Array | N
     return _weighted_mean(per_sample, weights)
 
 
+def ranking_loss(logits: jax.Array, labels: jax.Array, groups: jax.Array, weights: jax.Array | None = None) -> jax.Array:
+    """Within-scene pairwise ranking on the evaluation logits (RankNet): for every pair (i, j) of one
+    group with labels 1 and 0, softplus(-(s_i - s_j)) where s = logit(success) - logit(failure); the mean
+    over such pairs (0 when there is none). The planner executes a scene's top-scored grasp, so what
+    matters there is the order of one scene's candidates, which the per-sample L_e only asks for indirectly.
+
+    logits[B, 2], labels int[B] in {0, 1}, groups int[B] (equal within a scene), weights[B] (0: excluded) -> scalar."""
+    s = logits[:, 1] - logits[:, 0]
+    w = jnp.ones_like(s) if weights is None else jnp.asarray(weights, s.dtype)
+    y = jnp.asarray(labels) == 1
+    pair = (groups[:, None] == groups[None, :]) & y[:, None] & ~y[None, :]
+    pair_weight = jnp.where(pair, w[:, None] * w[None, :], 0.0)
+    total = jnp.sum(pair_weight)
+    per_pair = jax.nn.softplus(-(s[:, None] - s[None, :]))
+    return jnp.where(total > 0, jnp.sum(pair_weight * per_pair) / jnp.where(total > 0, total, 1.0), 0.0)
+
+
 def ernet_loss(
     output: ERNetOutput,
     labels: jax.Array,
