@@ -7,7 +7,7 @@ each filter beyond the paper's only where the benchmark shows it helps).
                                          [--reuse RUN_WITHOUT_FALLBACK]
 
 Each variant is `supergrasp` (or --method) with one change to today's planner (`VARIANTS`: a
-`FilterConfig` change, the second plan's filter, or a `MatchConfig` change), run on the same scenes (same seed) through
+`FilterConfig` change, the second plan's filter, a `MatchConfig` change, or a `PlannerConfig` one), run on the same scenes (same seed) through
 `eval.benchmark.run_benchmark` into its own folder OUT/<variant> (resumable: rerun the same command
 after an interrupt). Prints, per variant: GSR / TSR / GA, the unfinished scenes by why they ended
 (Stage 1 kept no candidate; Stage 2 scored every candidate <= the threshold; the memory of failed grasps
@@ -48,6 +48,8 @@ VARIANTS = {
     "relabel-extra": {"match": {"relabel_extra": 5}},  # ... only as 5 extra matches after the paper's K2
     # ... only in the second plan (the first finds nothing): `PlannerConfig.fallback_match`.
     "fallback-relabel": {"fallback_match": {"relabel_extra": 5}},
+    # Not Stage 1: refinements scored by the refine head alone, the paper's rule (`PlannerConfig.refine_rescore`).
+    "refine-head": {"planner": {"refine_rescore": 0}},
 }
 
 
@@ -60,6 +62,7 @@ def variant_config(name: str):
     fallback = changes.pop("fallback", "default")
     matching = dataclasses.replace(base.stage1.match, **changes.pop("match", {}))
     fallback_match = changes.pop("fallback_match", None)
+    planner = changes.pop("planner", {})
     fallback_match = None if fallback_match is None else dataclasses.replace(base.stage1.match, **fallback_match)
     if fallback == "default":
         fallback_filter = base.fallback_filter
@@ -67,7 +70,7 @@ def variant_config(name: str):
         fallback_filter = None if fallback is None else dataclasses.replace(FilterConfig(), **fallback)
     filt = dataclasses.replace(FilterConfig(), **changes)
     return dataclasses.replace(base, stage1=dataclasses.replace(base.stage1, filter=filt, match=matching),
-                               fallback_filter=fallback_filter, fallback_match=fallback_match)
+                               fallback_filter=fallback_filter, fallback_match=fallback_match, **planner)
 
 
 def differs_only_by_fallback(name: str) -> bool:

@@ -28,6 +28,7 @@ CAMERA = np.array([0.4, -0.1, 0.6])
 # without a grasp says exactly why and compiles nothing more.
 TINY = ERNetConfig.tiny(backbone=dataclasses.replace(ERNetConfig.tiny().backbone, sampler="random"))
 CONFIG = PlannerConfig(stage1_batch_sizes=(1,), fallback_filter=None)
+PAPER_RULE = dataclasses.replace(CONFIG, refine_rescore=0)  # a refinement scored by the refine head alone
 
 
 def box(centre_xy, half, yaw_deg, seed, n=600):
@@ -254,7 +255,7 @@ def test_stage2_batch_sizes_do_not_change_scores(planner, small_db, scene, first
 def test_forced_scores_give_each_decision(small_db, scene):
     """Heads that ignore their input: every valid candidate has the same scores, so the first valid wins."""
     refine_model = rigged([0.0, -5.0], [-5.0, -5.0, 5.0])  # eval 0.007, refine variant 2: 0.993
-    plan = Planner(refine_model, small_db, CONFIG).plan(*scene, viewpoint=CAMERA)
+    plan = Planner(refine_model, small_db, PAPER_RULE).plan(*scene, viewpoint=CAMERA)
     first_valid = int(np.argmax(plan.scores["valid"]))
     assert (plan.kind, plan.refine_variant, plan.candidate_index) == ("refined", 2, first_valid)
     assert plan.score == pytest.approx(1 / (1 + np.exp(-5.0)), rel=1e-5)
@@ -268,8 +269,19 @@ def test_forced_scores_give_each_decision(small_db, scene):
     none = ablation.plan(*scene, viewpoint=CAMERA)
     assert none.kind is None and none.pose is None and none.reason == "best eval 0.01 <= 0.7 (refinement disabled)"
 
-    weak = Planner(rigged([0.0, -5.0], [-5.0, -1.0, -5.0]), small_db, CONFIG).plan(*scene, viewpoint=CAMERA)
+    weak = Planner(rigged([0.0, -5.0], [-5.0, -1.0, -5.0]), small_db, PAPER_RULE).plan(*scene, viewpoint=CAMERA)
     assert weak.kind is None and weak.reason == "best eval 0.01 <= 0.7 and best refine 0.27 <= 0.7"
+
+    # Re-scored (the default): the same refinement is judged again by the evaluation head at its pose.
+    # An evaluation of 0.007 there sinks it (sqrt(0.993 * 0.007) = 0.08); one of 0.69, still below the
+    # bar as an evaluated grasp, lets it through at sqrt(0.993 * 0.69) = 0.83.
+    sunk = Planner(refine_model, small_db, CONFIG).plan(*scene, viewpoint=CAMERA)
+    assert sunk.kind is None and sunk.reason == "best eval 0.01 <= 0.7 and best re-scored refinement 0.08 <= 0.7"
+    both = Planner(rigged([0.0, 0.8], [-5.0, -5.0, 5.0]), small_db, CONFIG).plan(*scene, viewpoint=CAMERA)
+    sig = lambda z: 1 / (1 + np.exp(-z))
+    assert (both.kind, both.refine_variant, both.candidate_index) == ("refined", 2, first_valid)
+    assert both.score == pytest.approx(np.sqrt(sig(5.0) * sig(0.8)), rel=1e-5)
+    np.testing.assert_allclose(both.pose, plan.pose, atol=1e-6)
 
     strong = Planner(rigged([0.0, 5.0], [5.0, 5.0, 5.0]), small_db, CONFIG).plan(*scene, viewpoint=CAMERA)
     assert strong.kind == "evaluated" and strong.refine_variant is None and strong.candidate_index == first_valid
@@ -279,7 +291,7 @@ def test_forced_scores_give_each_decision(small_db, scene):
 def test_refined_poses_that_collide_are_left_out(small_db, scene):
     """Before a refined pose is executed it passes Stage 1's obstacle and table tests; the policy passes over
     the refinements that fail them, in its own order (here: refine variant 0 of the first valid candidate)."""
-    config = dataclasses.replace(CONFIG, support_plane=(0.0, 0.0, 1.0, 0.0), avoid_distance=1e-4, avoid_angle_deg=0.01)
+    config = dataclasses.replace(PAPER_RULE, support_plane=(0.0, 0.0, 1.0, 0.0), avoid_distance=1e-4, avoid_angle_deg=0.01)
     planner = Planner(rigged([0.0, -5.0], [5.0, 4.0, 3.0]), small_db, config)  # variant 0 > 1 > 2, all > 0.7
     points, labels = scene
     first = planner.plan(points, labels, viewpoint=CAMERA)
@@ -304,6 +316,37 @@ def test_refined_poses_that_collide_are_left_out(small_db, scene):
                                          config.support_plane)
     assert not (executed["collision_scene"][0] or executed["below_support"][0])
     assert plan.to_dict()["refinements_rejected"] == expected
+
+
+def test_rescored_refinements_are_judged_at_their_refined_pose(small_db, scene):
+    """`refine_rescore`: when no evaluation passes, the refine head's best R proposals are scored again by
+    E-RNet at their refined pose (checked against `ernet.score` called on those poses), each scoring the
+    geometric mean of the two; the policy decides on those scores, others count 0."""
+    model = ERNet(TINY, rngs=nnx.Rngs(3))
+    config = dataclasses.replace(CONFIG, eval_threshold=0.99, refine_threshold=0.3, refine_rescore=8)
+    planner = Planner(model, small_db, config)
+    plan = planner.plan(*scene, viewpoint=CAMERA, seed=0)
+    s = plan.scores
+    head = np.where(s["valid"][:, None], s["refine_prob"], -1.0)
+    k = head.shape[1]
+    top = np.argsort(-head.reshape(-1), kind="stable")[:8]
+    index, variant = top // k, top % k
+    rescored = np.zeros_like(head, bool)
+    rescored[index, variant] = True
+    assert not s["refine_score"][~rescored].any()
+    # The same E-RNet call the planner makes, on the refined poses of those proposals.
+    poses = np.stack([plan.candidates[o].poses[r] for o, r in zip(s["object"], s["object_candidate"])]).astype(np.float32)
+    widths = np.array([plan.candidates[o].widths[r] for o, r in zip(s["object"], s["object_candidate"])], np.float32)
+    scene_pad, scene_mask = planner._scene(scene[0], 0)
+    refined = np.asarray(refined_pose(poses[index], variant, SPEC))
+    graphdef, state = nnx.split(model)
+    judged = ernet.score(graphdef, state, scene_pad, refined, widths[index], scene_mask, spec=SPEC, key=jax.random.key(0))
+    expected = np.sqrt(s["refine_prob"][index, variant] * np.where(judged.valid, judged.eval_prob, 0.0))
+    np.testing.assert_allclose(s["refine_score"][index, variant], expected, atol=2e-5)
+    best = int(np.argmax(s["refine_score"].reshape(-1)))
+    assert expected.max() > 0.3  # the random network's scores lie around 0.5: some refinement passes
+    assert (plan.kind, plan.candidate_index, plan.refine_variant) == ("refined", best // k, best % k)
+    assert plan.score == pytest.approx(float(s["refine_score"].max()), abs=1e-6)
 
 
 def test_avoided_poses_are_never_planned_again(small_db, scene):
