@@ -318,6 +318,13 @@ def decide(eval_prob, refine_prob, valid, eval_threshold=0.7, refine_threshold=0
     return index, kind, variant, score.astype(jnp.float32)
 
 
+def rescored_refinement(refine_prob, judged):
+    """A refinement's score under `PlannerConfig.refine_rescore`: the geometric mean of the refine head's
+    score and the evaluation head's score of the refined pose (each in [0, 1], any equal shapes): high
+    only when both heads agree."""
+    return np.sqrt(np.asarray(refine_prob, np.float32) * np.asarray(judged, np.float32))
+
+
 def select_grasp(
     poses,
     widths,
@@ -711,7 +718,7 @@ class Planner:
         out, _ = self._score(scene_pad, scene_mask, refined, refined_widths, np.arange(slots) < len(flat), seed, thresholds)
         judged = np.where(out["valid"][: len(flat)], out["eval_prob"][: len(flat)], 0.0)
         score = np.zeros_like(scores["refine_prob"], np.float32)
-        score[index, variant] = np.sqrt(scores["refine_prob"][index, variant] * judged)
+        score[index, variant] = rescored_refinement(scores["refine_prob"][index, variant], judged)
         scores["refine_score"] = score
         index, kind, variant, best = (np.asarray(v) for v in decide(
             scores["eval_prob"], score, scores["valid"], cfg.eval_threshold, cfg.refine_threshold, cfg.use_refinement))

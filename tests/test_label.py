@@ -298,3 +298,36 @@ def test_a_labelled_directory_replays_to_its_recorded_outcomes(setup, whole):
     assert "same pose reproduces" in table(out, 1, 0.002, 2.0)
     with pytest.raises(ValueError, match="moves"):
         replay_directory(str(whole[0]), moves=-1)
+
+
+def test_refinements_rescored_as_the_planner_scores_them(whole):
+    """`train.refine_rescore`: each refinement's evaluation, cropped from the stored scene cloud at the
+    refined pose, is what the planner's Stage-2 call (`ernet.score` on the scene cloud) gives that pose."""
+    from flax import nnx
+
+    from sgjax.geometry.gripper import refined_pose
+    from sgjax.planner import rescored_refinement
+    from sgjax.stage2 import ernet
+    from train.refine_rescore import rescore_directory, table
+
+    out = rescore_directory(str(whole[0]), progress=False)
+    n, k = out["refine_prob"].shape
+    assert n > 0 and k == CONFIG.spec.num_refinements and out["judged"].shape == (n, k)
+    assert ((out["judged"] >= 0) & (out["judged"] <= 1)).all() and out["judged"].max() > 0
+    stored, clouds = dataset.read_label_shard(whole[0] / "scenes-000000-000002.npz")
+    stored = {key: v[stored["valid"]] for key, v in stored.items()}
+    model = ernet.load_default_model()
+    graphdef, state = nnx.split(model)
+    first = stored["cloud_row"] == 0
+    rows = np.flatnonzero(first)
+    poses = np.asarray(refined_pose(stored["pose"][rows].astype(np.float32), 1, CONFIG.spec))
+    live = ernet.score(graphdef, state, clouds[0], poses, stored["width"][rows], spec=CONFIG.spec)
+    mine = out["judged"][: len(rows), 1]  # the first shard's first scene comes first, in stored order
+    np.testing.assert_array_equal(out["scene_seed"][: len(rows)], stored["scene_seed"][rows])
+    # Both crop the same region; only which of its points are kept (more than the network takes) differs.
+    diff = np.abs(mine - np.where(live.valid, live.eval_prob, 0.0))
+    print("DIFF", diff.max(), diff.mean())
+    assert diff.max() < 0.15 and diff.mean() < 0.03, diff
+    text = table(out)
+    assert "geometric mean (refine_rescore)" in text and "| all |" in text
+    np.testing.assert_allclose(rescored_refinement([0.81, 0.0], [0.64, 1.0]), [0.72, 0.0], atol=1e-6)
