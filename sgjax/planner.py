@@ -325,6 +325,9 @@ def rescored_refinement(refine_prob, judged):
     return np.sqrt(np.asarray(refine_prob, np.float32) * np.asarray(judged, np.float32))
 
 
+_jitted_decide = jax.jit(decide)
+
+
 def select_grasp(
     poses,
     widths,
@@ -650,6 +653,9 @@ class Planner:
                 # process's first plan then loads one Stage-2 program, not all of them.
                 if size != slots and not exported.ready("stage2", *self._stage2_call(*args)[1:]):
                     self._score(*args)
+                if cfg.use_refinement:  # the host-side decision of re-scored or rejected refinements, per size
+                    self._decide(np.zeros(size, np.float32), np.zeros((size, cfg.spec.num_refinements), np.float32),
+                                 np.zeros(size, bool))
             self._stage2_ready = True
         out, choice = self._score(scene_pad, scene_mask, poses, widths, np.arange(slots) < m, seed, thresholds)
         t2 = time.perf_counter()
@@ -708,20 +714,32 @@ class Planner:
         k = head.shape[1]
         flat = np.argsort(-head.reshape(-1), kind="stable")[: cfg.refine_rescore]
         flat = flat[head.reshape(-1)[flat] > 0]
+        n = len(flat)
         index, variant = flat // k, flat % k
-        slots = cfg.stage2_slots(len(flat))
-        refined = np.tile(np.eye(4, dtype=np.float32), (slots, 1, 1))
-        refined_widths = np.full(slots, np.nan, np.float32)
-        if len(flat):
-            refined[: len(flat)] = np.asarray(gripper.refined_pose(poses[index], variant, cfg.spec), np.float32)
-            refined_widths[: len(flat)] = widths[index]
-        out, _ = self._score(scene_pad, scene_mask, refined, refined_widths, np.arange(slots) < len(flat), seed, thresholds)
-        judged = np.where(out["valid"][: len(flat)], out["eval_prob"][: len(flat)], 0.0)
+        slots = cfg.stage2_slots(n)
+        # Fixed shapes (a Stage-2 batch size), so that no plan compiles: row 0 fills the padding slots.
+        pad_index, pad_variant = np.zeros(slots, np.int64), np.zeros(slots, np.int64)
+        pad_index[:n], pad_variant[:n] = index, variant
+        refined = np.asarray(gripper.refined_pose(poses[pad_index], pad_variant, cfg.spec), np.float32)
+        refined_widths = np.where(np.arange(slots) < n, widths[pad_index], np.nan).astype(np.float32)
+        out, _ = self._score(scene_pad, scene_mask, refined, refined_widths, np.arange(slots) < n, seed, thresholds)
+        judged = np.where(out["valid"][:n], out["eval_prob"][:n], 0.0)
         score = np.zeros_like(scores["refine_prob"], np.float32)
         score[index, variant] = rescored_refinement(scores["refine_prob"][index, variant], judged)
         scores["refine_score"] = score
-        index, kind, variant, best = (np.asarray(v) for v in decide(
-            scores["eval_prob"], score, scores["valid"], cfg.eval_threshold, cfg.refine_threshold, cfg.use_refinement))
+        return self._decide(scores["eval_prob"], score, scores["valid"])
+
+    def _decide(self, eval_prob: np.ndarray, refine_score: np.ndarray, valid: np.ndarray) -> dict:
+        """`decide` on the host's scores [M], [M, K], [M], padded to the Stage-2 batch size that holds M so
+        that it compiles once per batch size, not once per candidate count -> choice (pose None)."""
+        cfg = self.config
+        m = len(eval_prob)
+        slots = cfg.stage2_slots(m)
+        pad = lambda a, fill: np.concatenate([a, np.full((slots - m, *a.shape[1:]), fill, a.dtype)])
+        index, kind, variant, best = (np.asarray(v) for v in _jitted_decide(
+            pad(np.asarray(eval_prob, np.float32), 0.0), pad(np.asarray(refine_score, np.float32), 0.0),
+            pad(np.asarray(valid, bool), False), np.float32(cfg.eval_threshold), np.float32(cfg.refine_threshold),
+            np.bool_(cfg.use_refinement)))
         return {"index": index, "kind": kind, "variant": variant, "score": best, "pose": None}
 
     def _collision_free(self, stage1: Stage1, choice: dict, scores: dict, objects: list, candidates: list, view,
@@ -756,10 +774,7 @@ class Planner:
             # A score of 0 never exceeds a threshold in [0, 1): these variants can no longer be chosen.
             rejected += 1
             refine_prob[index, hits] = 0.0
-            index, kind, variant, score = (np.asarray(v) for v in decide(
-                scores["eval_prob"], refine_prob, scores["valid"], cfg.eval_threshold, cfg.refine_threshold,
-                cfg.use_refinement))
-            choice = {"index": index, "kind": kind, "variant": variant, "score": score, "pose": None}
+            choice = self._decide(scores["eval_prob"], refine_prob, scores["valid"])
         return choice, rejected
 
     def _stage2_call(self, scene_pad, scene_mask, poses, widths, slots, seed: int, thresholds):
