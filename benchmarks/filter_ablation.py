@@ -38,6 +38,7 @@ VARIANTS = {
     "no-fallback": {"fallback": None},  # the planner before 2026-12-02 evening: one plan
     "margin-5mm": {"obstacle_margin": 0.005},  # (iv) with the hand boxes grown by 5 mm (the old default)
     "no-shadows": {"shadow_depth": 0.0},  # (iv) tests the observed obstacle points only
+    "shadow-8cm": {"shadow_depth": 0.08},  # (iv) with each obstacle point hiding twice as deep a shadow
     "hidden-accept": {"hidden_contacts": "accept"},  # (iii) does not judge a finger whose contacts are hidden
     "hidden-reject": {"hidden_contacts": "reject"},  # (iii) the paper's strict reading
     "paper": {"shadow_depth": 0.0, "obstacle_margin": 0.0, "hidden_contacts": "accept"},  # = labelling's stage1_paper, with (iv)
