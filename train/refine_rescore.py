@@ -24,14 +24,6 @@ from train import dataset, judgement, sources, trainer
 from train.score_data import load_scorer
 
 
-def _scores(eval_step, params, samples, key) -> dict[str, np.ndarray]:
-    n, parts = len(samples["label"]), []
-    for i, (index, weight) in enumerate(dataset.batch_indices(n, 128, None)):
-        out = eval_step(params, dataset.make_batch(samples, index, weight), jax.random.fold_in(key, i))["per_sample"]
-        parts.append({k: np.asarray(v)[: min(128, n - i * 128)] for k, v in out.items()})
-    return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
-
-
 def rescore_directory(data: str | os.PathLike, model: str | os.PathLike | None = None, progress: bool = True) -> dict[str, np.ndarray]:
     """E-RNet's scores of every valid sample of a labelled directory and of its refined poses.
 
@@ -56,11 +48,11 @@ def rescore_directory(data: str | os.PathLike, model: str | os.PathLike | None =
         samples = dataset.select(samples, np.flatnonzero(samples["valid"]))
         if not len(samples["label"]):
             continue
-        base = _scores(eval_step, params, dataset.crop_samples(samples, clouds, config.spec, crop), key)
+        base = trainer.score_samples(eval_step, params, dataset.crop_samples(samples, clouds, config.spec, crop), 128, key)[1]
         judged = []
         for k in range(config.spec.num_refinements):
             moved = {**samples, "pose": np.asarray(gripper.refined_pose(samples["pose"], k, config.spec), np.float32)}
-            out = _scores(eval_step, params, dataset.crop_samples(moved, clouds, config.spec, crop), key)
+            out = trainer.score_samples(eval_step, params, dataset.crop_samples(moved, clouds, config.spec, crop), 128, key)[1]
             judged.append(np.where(out["weight"] > 0, out["prob"], 0.0))
         keep = base["weight"] > 0  # samples with an anchor point at their own pose (the planner's valid)
         columns.append({"eval_prob": base["prob"][keep], "refine_prob": base["refine_prob"][keep],

@@ -722,6 +722,24 @@ def evaluate_params(
     sharding: where each batch [batch_size, ...] goes, as the training batches (`Placement.batch`; with
     replicated `params` the evaluation runs data-parallel too); None: the default device.
     resamples: > 0 adds scene-resampled intervals to the judgement (`train.judgement.scene_interval`)."""
+    totals, per = score_samples(eval_step, params, samples, batch_size, key, sharding)
+    metrics = summarise(totals)
+    if per is not None:
+        metrics["judgement"] = judge_samples(per, samples, resamples)
+    return metrics
+
+
+def score_samples(
+    eval_step,
+    params,
+    samples: Mapping[str, np.ndarray],
+    batch_size: int,
+    key,
+    sharding: jax.sharding.Sharding | None = None,
+) -> tuple[dict[str, Any], dict[str, np.ndarray] | None]:
+    """`eval_step` over preloaded columns [N] in fixed-size padded batches (batch i downsampled with
+    fold_in(key, i)) -> (the summed batch stats, the per-sample outputs [N, ...] when the step gives
+    them, else None)."""
     totals, parts = None, []
     n = len(samples["label"])
     for i, (index, weight) in enumerate(dataset.batch_indices(n, batch_size, None)):
@@ -731,11 +749,7 @@ def evaluate_params(
         if per is not None:
             parts.append({k: np.asarray(v)[: min(batch_size, n - i * batch_size)] for k, v in per.items()})
         totals = stats if totals is None else jax.tree.map(jnp.add, totals, stats)
-    metrics = summarise(totals)
-    if parts:
-        per = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
-        metrics["judgement"] = judge_samples(per, samples, resamples)
-    return metrics
+    return totals, ({k: np.concatenate([p[k] for p in parts]) for k in parts[0]} if parts else None)
 
 
 def judge_samples(per: Mapping[str, np.ndarray], samples: Mapping[str, np.ndarray], resamples: int = 0) -> dict[str, Any]:
