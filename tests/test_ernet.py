@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -231,8 +233,11 @@ def test_paper_sizes_shapes():
 
 
 def test_config_round_trip_and_checks():
-    for config in (ERNetConfig.paper(), ERNetConfig.light(), TINY):
+    for config in (ERNetConfig.paper(), ERNetConfig.light(), TINY, ERNetConfig.tiny(hand_points=8)):
         assert ERNetConfig.from_dict(config.to_dict()) == config
+        assert ERNetConfig.from_dict(json.loads(json.dumps(config.to_dict()))) == config  # as a checkpoint stores it
+    with pytest.raises(ValueError, match="unknown fields.*bogus"):
+        ERNetConfig.from_dict({**TINY.to_dict(), "bogus": 1})
     with pytest.raises(ValueError, match="n_anchor"):
         ERNetConfig(n_points=10, n_anchor=20)
     with pytest.raises(ValueError, match="3 layers"):

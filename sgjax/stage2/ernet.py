@@ -41,6 +41,7 @@ from sgjax.geometry import gripper
 from sgjax.geometry.gripper import GripperSpec
 from sgjax.stage2 import checkpoint
 from sgjax.stage2.checkpoint import restore_run
+from sgjax.utils import configs
 from sgjax.stage2.crops import (
     HAND_MARGIN,
     HAND_SWEEP,
@@ -121,7 +122,7 @@ class ERNetConfig:
         for name in ("anchor_mlp", "eval_hidden", "refine_hidden"):
             object.__setattr__(self, name, tuple(int(c) for c in getattr(self, name)))
         if isinstance(self.backbone, dict):
-            object.__setattr__(self, "backbone", _backbone_from_dict(self.backbone))
+            object.__setattr__(self, "backbone", configs.from_dict(BackboneConfig, self.backbone))
         if self.n_points < 1 or not 1 <= self.n_anchor <= self.n_points:
             raise ValueError(f"need 1 <= n_anchor <= n_points, got n_anchor={self.n_anchor}, n_points={self.n_points}")
         if self.backbone.set_abstraction[0].n_centroids > self.n_points:
@@ -203,13 +204,8 @@ class ERNetConfig:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> ERNetConfig:
-        return cls(**data)
-
-
-def _backbone_from_dict(data: dict[str, Any]) -> BackboneConfig:
-    data = dict(data)
-    data["set_abstraction"] = tuple(SetAbstractionConfig(**sa) for sa in data["set_abstraction"])
-    return BackboneConfig(**data)
+        """The config back from `to_dict` (e.g. a checkpoint's JSON meta); ValueError names an unknown field."""
+        return configs.from_dict(cls, data)
 
 
 def _check_config(config: ERNetConfig, spec: GripperSpec) -> None:

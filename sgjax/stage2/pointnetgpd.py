@@ -46,6 +46,7 @@ from sgjax.geometry import gripper
 from sgjax.geometry.gripper import GripperSpec
 from sgjax.stage2 import checkpoint
 from sgjax.stage2.checkpoint import restore_run
+from sgjax.utils import configs
 from sgjax.stage2.crops import crop_closing_regions, in_closing_region_local
 from sgjax.stage2.ernet import (
     DEFAULT_SPEC,
@@ -113,7 +114,8 @@ class PointNetGPDConfig:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> PointNetGPDConfig:
-        return cls(**data)
+        """The config back from `to_dict` (e.g. a checkpoint's JSON meta); ValueError names an unknown field."""
+        return configs.from_dict(cls, data)
 
 
 # ---------------------------------------------------------------------------------------------
