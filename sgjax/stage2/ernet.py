@@ -429,9 +429,7 @@ def ranking_loss(logits: jax.Array, labels: jax.Array, groups: jax.Array, weight
     y = jnp.asarray(labels) == 1
     pair = (groups[:, None] == groups[None, :]) & y[:, None] & ~y[None, :]
     pair_weight = jnp.where(pair, w[:, None] * w[None, :], 0.0)
-    total = jnp.sum(pair_weight)
-    per_pair = jax.nn.softplus(-(s[:, None] - s[None, :]))
-    return jnp.where(total > 0, jnp.sum(pair_weight * per_pair) / jnp.where(total > 0, total, 1.0), 0.0)
+    return _weighted_mean(jax.nn.softplus(-(s[:, None] - s[None, :])), pair_weight)
 
 
 def ernet_loss(
