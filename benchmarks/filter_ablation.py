@@ -28,6 +28,7 @@ from eval.benchmark import run_benchmark
 from eval.methods import make_method
 from sgjax.planner import PlannerConfig
 from sgjax.stage1.filters import FilterConfig
+from sgjax.stage1.neighbours import NeighbourFitConfig
 
 # The filters beyond the paper's (i)-(iii) and the table (v), each switched to the paper's reading (or,
 # for the obstacle margin, back to the default it had before 2026-12-02); and the second plan when the
@@ -51,6 +52,12 @@ VARIANTS = {
     "fallback-relabel": {"fallback_match": {"relabel_extra": 5}},
     # Not Stage 1: refinements scored by the refine head alone, the paper's rule (`PlannerConfig.refine_rescore`).
     "refine-head": {"planner": {"refine_rescore": 0}},
+    # Not Stage 1's: the planner's test of the hand against the neighbours' fitted superquadrics
+    # (`PlannerConfig.neighbour_fits`): off (the planner before 2026-12-03 evening), with a 5 mm margin, or
+    # in the second plan too.
+    "no-neighbour-fits": {"planner": {"neighbour_fits": None}},
+    "neighbour-fits-5mm": {"planner": {"neighbour_fits": NeighbourFitConfig(margin=0.005)}},
+    "neighbour-fits-both": {"planner": {"neighbour_fits": NeighbourFitConfig(in_fallback=True)}},  # in the second plan too
 }
 
 

@@ -8,8 +8,10 @@
                    object, the rest of the scene as obstacles, the observed table as support plane)
                    scored by PointNetGPD; the best is executed.
   gpd+s2           "PointNetGPD + Ours (S2)": the GPD-style candidates scored by E-RNet and chosen by
-                   SuperGrasp's decision policy (`sgjax.planner.decide`: the best evaluation > 0.7,
-                   else the best refinement > 0.7, refined by that variant, else no grasp).
+                   SuperGrasp's decision policy as the planner applies it (`sgjax.planner`: the best
+                   evaluation > 0.7, else the best refinement > 0.7, a refinement re-scored at its
+                   refined pose (`refine_rescore`) and executed only once it passes the generator's
+                   own collision test against the other objects and the table, else no grasp).
 
 Options (`eval.methods.make_method`): `model` -- the network: a run directory, a model instance, or
 None for the shipped default (`sgjax/models/pointnetgpd_default` for the PointNetGPD methods,
@@ -35,6 +37,7 @@ import functools
 import time
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
@@ -43,6 +46,7 @@ from eval.protocol import Decision, near_grasps
 from sgjax.geometry import gripper, pointcloud
 from sgjax import planner
 from sgjax.geometry.gripper import GripperSpec
+from sgjax.stage1.filters import lift_to_plane
 from sgjax.stage1.pipeline import Stage1Config
 from sgjax.stage2.scene_cloud import SceneCloudConfig
 
@@ -57,7 +61,8 @@ class BaselineConfig:
     min_object_points, stage1_batch_sizes: as `sgjax.planner.PlannerConfig` (objects with fewer
         points are skipped; objects run through Stage 1 in chunks of these sizes).
     scene_cloud: the scene cloud the networks crop from (as in labelling; no workspace crop).
-    eval_threshold, refine_threshold, use_refinement: SuperGrasp's decision policy (gpd+s2).
+    eval_threshold, refine_threshold, use_refinement, refine_rescore: SuperGrasp's decision policy
+        (gpd+s2), as `sgjax.planner.PlannerConfig` (refine_rescore 0: the paper's rule, the refine head alone).
     """
 
     gpd: gpd_sampler.GPDConfig = dataclasses.field(default_factory=gpd_sampler.GPDConfig)
@@ -69,11 +74,14 @@ class BaselineConfig:
     eval_threshold: float = 0.7
     refine_threshold: float = 0.7
     use_refinement: bool = True
+    refine_rescore: int = 64
 
     def __post_init__(self):
         object.__setattr__(self, "stage1_batch_sizes", tuple(sorted({int(b) for b in self.stage1_batch_sizes})))
         if self.gpd.spec != self.stage1.spec:
             raise ValueError("BaselineConfig: the GPD generator and Stage 1 must use the same GripperSpec")
+        if not 0 <= self.refine_rescore <= self.max_candidates:
+            raise ValueError(f"refine_rescore must be in [0, max_candidates={self.max_candidates}], got {self.refine_rescore}")
         if self.max_candidates < 1 or not self.stage1_batch_sizes or self.stage1_batch_sizes[0] < 1:
             raise ValueError("max_candidates and stage1_batch_sizes must be >= 1")
         if self.min_object_points < pointcloud.MIN_POINTS:
@@ -249,7 +257,7 @@ class _CandidateMethod:
             return Decision(None, 0.0, 0.0, cands.reason, {"stage1_s": mid - start, "stage2_s": 0.0, "total_s": mid - start}, info)
         cfg = self.config
         scene, mask, _ = cfg.scene_cloud.make(points, None, seed)
-        pose, width, score, reason, extra = self._decide(cands, scene, mask, seed)
+        pose, width, score, reason, extra = self._decide(cands, scene, mask, seed, points, labels)
         end = time.perf_counter()
         timing = {"stage1_s": mid - start, "stage2_s": end - mid, "total_s": end - start}
         info.update(extra)
@@ -275,7 +283,7 @@ class PointNetGPDMethod(_CandidateMethod):
         self.generator_name = generator
         super().__init__(network, config, make)
 
-    def _decide(self, cands: CandidateSet, scene, mask, seed: int):
+    def _decide(self, cands: CandidateSet, scene, mask, seed: int, points=None, labels=None):
         from sgjax.stage2 import pointnetgpd
 
         out = pointnetgpd.score(self.graphdef, self.state, scene, cands.poses, cands.widths, mask,
@@ -301,31 +309,96 @@ class GPDStage2Method(_CandidateMethod):
         config = config or BaselineConfig()
         super().__init__(ernet.as_model(model), config, functools.partial(gpd_candidates, config=config))
 
-    def _decide(self, cands: CandidateSet, scene, mask, seed: int):
+    def _decide(self, cands: CandidateSet, scene, mask, seed: int, points=None, labels=None):
         from sgjax.stage2 import ernet
 
         cfg = self.config
-        out = ernet.score(self.graphdef, self.state, scene, cands.poses, cands.widths, mask, spec=cfg.spec,
-                          key=jax.random.key(seed))
+        spec = cfg.spec
+        score_fn = lambda poses, widths: ernet.score(self.graphdef, self.state, scene, poses, widths, mask, spec=spec,
+                                                     key=jax.random.key(seed))
+        out = score_fn(cands.poses, cands.widths)
         valid = np.asarray(out.valid) & (np.arange(len(cands.widths)) < cands.n)
-        index, kind, variant, score = _decide()(out.eval_prob, out.refine_prob, valid, np.float32(cfg.eval_threshold),
-                                                np.float32(cfg.refine_threshold), np.bool_(cfg.use_refinement))
-        index, kind, variant, score = int(index), int(kind), int(variant), float(score)
+        eval_prob, refine_prob = np.asarray(out.eval_prob), np.asarray(out.refine_prob)
+        decide_again = lambda e, r, v: _choice(_decide()(e, r, v, np.float32(cfg.eval_threshold),
+                                                         np.float32(cfg.refine_threshold), np.bool_(cfg.use_refinement)))
+        choice = decide_again(eval_prob, refine_prob, valid)
+        refine_score = refine_prob
         extra = {"valid": int(valid.sum())}
-        if kind == 0:
+        if cfg.use_refinement and cfg.refine_rescore and choice["kind"] != planner.KIND_EVALUATED:
+            # As the planner: the refine head's best proposals judged at their refined pose (`rescored_refinements`).
+            def judge(index, variant):
+                slots = len(cands.widths)  # the one shape this method scores: no new compile
+                n = len(index)
+                pad_index, pad_variant = np.zeros(slots, np.int64), np.zeros(slots, np.int64)
+                pad_index[:n], pad_variant[:n] = index, variant
+                refined = np.asarray(gripper.refined_pose(cands.poses[pad_index], pad_variant, spec), np.float32)
+                widths = np.where(np.arange(slots) < n, cands.widths[pad_index], np.nan).astype(np.float32)
+                judged = score_fn(refined, widths)
+                return np.where(np.asarray(judged.valid)[:n], np.asarray(judged.eval_prob)[:n], 0.0)
+
+            refine_score = planner.rescored_refinements(refine_prob, valid, cfg.refine_rescore, judge)
+            choice = decide_again(eval_prob, refine_score, valid)
+        rejected = 0
+        if choice["kind"] == planner.KIND_REFINED:
+            collides = _RefinedCollisions(cands, points, labels, cfg, seed)
+            choice, rejected = planner.collision_free(choice, eval_prob, refine_score, valid, collides, decide_again)
+        index, kind, variant, score = choice["index"], choice["kind"], choice["variant"], choice["score"]
+        if rejected:
+            extra["refinements_rejected"] = rejected
+        if kind == planner.KIND_NONE:
             if not valid.any():
                 reason = f"none of the {cands.n} candidates has a scene point in its closing region (E-RNet valid = False)"
             else:
-                eval_prob, refine_prob = np.asarray(out.eval_prob)[valid], np.asarray(out.refine_prob)[valid]
-                reason = f"best eval {eval_prob.max():.2f} <= {cfg.eval_threshold:g}"
-                reason += (f" and best refine {refine_prob.max():.2f} <= {cfg.refine_threshold:g}" if cfg.use_refinement
-                           else " (refinement disabled)")
+                reason = f"best eval {eval_prob[valid].max():.2f} <= {cfg.eval_threshold:g}"
+                if not cfg.use_refinement:
+                    reason += " (refinement disabled)"
+                elif rejected:
+                    reason += f", and the {rejected} refined pose(s) scored above {cfg.refine_threshold:g} collide"
+                else:
+                    best = refine_score[valid].max()
+                    what = "re-scored refinement" if refine_score is not refine_prob else "refine"
+                    reason += f" and best {what} {best:.2f} <= {cfg.refine_threshold:g}"
             return None, 0.0, score, reason, extra
         pose = cands.poses[index]
-        if kind == 2:
-            pose = np.asarray(gripper.refined_pose(pose, variant, cfg.spec))
+        if kind == planner.KIND_REFINED:
+            pose = np.asarray(choice["pose"], np.float64)
             extra.update(kind="refined", refine_variant=variant)
         else:
             extra.update(kind="evaluated")
         extra.update(index=index)
         return pose, cands.widths[index], score, "", extra
+
+
+def _choice(out) -> dict:
+    """`decide`'s outputs as the planner's choice dict (pose None: the refined pose is made on the host)."""
+    index, kind, variant, score = (np.asarray(v).item() for v in out)
+    return {"index": int(index), "kind": int(kind), "variant": int(variant), "score": float(score), "pose": None}
+
+
+class _RefinedCollisions:
+    """`collides(index)` for `sgjax.planner.collision_free` on GPD-style candidates: every refined variant
+    of candidate `index` under the generator's own collision test (`gpd_sampler.hand_collisions`) against
+    the observed objects other than the grasped one (the object with most points between the fingers:
+    it lies in E-RNet's crop, whose refine head judged how refinements fare against it) and the table."""
+
+    def __init__(self, cands: CandidateSet, points, labels, config: BaselineConfig, seed: int):
+        self.cands, self.config = cands, config
+        self.cloud, self.mask, self.table_z, _, self.labels = gpd_sampler.prepare_labelled_cloud(points, labels, config.gpd, seed)
+
+    def __call__(self, index: int):
+        spec = self.config.spec
+        pose = self.cands.poses[index].astype(np.float32)
+        refined = np.asarray(gripper.refined_poses(pose, spec), np.float32)
+        widths = np.full(len(refined), self.cands.widths[index], np.float32)
+        # As the planner: a deepened hand that reaches into the table is backed off it along its approach
+        # first (at most Stage 1's max_lift), which undoes some deepening (`filters.lift_to_plane`).
+        plane = np.array([0.0, 0.0, 1.0, -self.table_z if np.isfinite(self.table_z) else 1e3], np.float32)
+        variants = np.asarray(lift_to_plane(jnp.asarray(refined), widths, plane, spec, self.config.gpd.table_clearance,
+                                            self.config.stage1.max_lift)[0])
+        between = np.asarray(gripper.points_in_closing_region(self.cloud, pose, widths[0], spec)) & self.mask
+        held = self.labels[between]
+        target = np.bincount(held).argmax() if len(held) else -1
+        obstacles = self.mask & (self.labels != target)
+        hits = np.asarray(gpd_sampler.hand_collisions(variants, widths, self.cloud, obstacles, np.float32(self.table_z),
+                                                      self.config.gpd))
+        return hits, variants, np.any(variants != refined, axis=(1, 2))

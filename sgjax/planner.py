@@ -6,7 +6,9 @@
     plan = sgjax.planner.plan(scene_points, mask_or_labels_or_target)    # cached default planner
 
 Stage 1 (`sgjax.stage1.pipeline`) turns each object's single-view cloud into grasp candidates (superquadric
-fit, similarity matching, grasp transfer, coarse filtering, the rest of the scene as obstacles).
+fit, similarity matching, grasp transfer, coarse filtering, the rest of the scene as obstacles). Then,
+with every object's fit at hand, the candidates whose hand meets another object's fitted superquadric
+go (`PlannerConfig.neighbour_fits`, `sgjax.stage1.neighbours`: the neighbours' unseen sides).
 Stage 2 scores all candidates of all objects in ONE jit-compiled E-RNet call on the whole scene
 cloud (`sgjax.stage2.ernet.score`), and the decision policy of the paper (Sec. IV-E, "During inference")
 picks the grasp (`decide`):
@@ -21,8 +23,8 @@ picks the grasp (`decide`):
      head, and a refinement scores the geometric mean of the two (`PlannerConfig.refine_rescore`; 0: the
      paper's rule, the refine head alone),
      once the refined pose, backed off the table where it reaches into it, has passed Stage 1's obstacle
-     and table tests ((iv), (v): `Stage1.collisions`); one that fails is left out and the policy decides
-     again;
+     and table tests ((iv), (v): `Stage1.collisions`) and the neighbours' fits; one that fails is left out
+     and the policy decides again;
   3. otherwise there is no grasp, and `Plan.reason` says why.
 
 `use_refinement=False` skips step 2 (the paper's "without the refinement branch" ablation).
@@ -66,6 +68,8 @@ from sgjax.utils.cache import enable_compilation_cache
 from sgjax.stage1.filters import FilterConfig
 from sgjax.stage1.matching import MatchConfig
 from sgjax.stage1.memory import Stage1Memory
+from sgjax.stage1 import neighbours
+from sgjax.stage1.neighbours import NeighbourFitConfig
 from sgjax.stage1.pipeline import Candidates, Stage1, Stage1Config
 from sgjax.stage2.scene_cloud import SceneCloudConfig
 
@@ -136,6 +140,12 @@ class PlannerConfig:
         E.g. `MatchConfig(relabel_extra=5)`: when nothing was found, also match the fitted
         superquadric's other axis labellings, for flat objects whose single-view fit names its axes so
         that the database's matching shape ranks low (docs/benchmark.md). Used only with a fallback_filter.
+    neighbour_fits: after Stage 1, remove every candidate whose hand (fingers and palm, swept back over
+        the approach) meets another object's fitted superquadric grown by its margin
+        (`sgjax.stage1.neighbours`: the sides of neighbours the camera did not see, which filter (iv)
+        cannot test); refined poses are checked against them too. In the first plan only, unless
+        `in_fallback`. None: off (the paper's filters). Default `NeighbourFitConfig()` (2 mm): see
+        docs/benchmark.md, "Neighbours' hidden sides".
     reuse_tolerance: with a `Stage1Memory` passed to `plan`, an object whose cloud is the same as when
         Stage 1 last ran on it, within this many metres (`pointcloud.same_cloud`), keeps those candidates
         and is only tested against the obstacles of now (`Stage1.rescene`). 0: only identical clouds.
@@ -162,6 +172,7 @@ class PlannerConfig:
     fallback_filter: FilterConfig | None = FALLBACK_FILTER
     fallback_match: MatchConfig | None = None
     reuse_tolerance: float = 0.0005
+    neighbour_fits: NeighbourFitConfig | None = NeighbourFitConfig()
 
     def __post_init__(self):
         object.__setattr__(self, "stage1_batch_sizes", tuple(sorted({int(b) for b in self.stage1_batch_sizes})))
@@ -328,6 +339,51 @@ def rescored_refinement(refine_prob, judged):
 _jitted_decide = jax.jit(decide)
 
 
+def refine_proposals(refine_prob, valid, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """The refine head's best `count` proposals: refine_prob [M, K], valid [M] -> (index [n], variant [n]),
+    n <= count, best first (ties: lowest candidate, then variant), only valid candidates and scores > 0."""
+    head = np.where(np.asarray(valid, bool)[:, None], np.asarray(refine_prob, np.float32), -1.0)
+    k = head.shape[1]
+    flat = np.argsort(-head.reshape(-1), kind="stable")[:count]
+    flat = flat[head.reshape(-1)[flat] > 0]
+    return flat // k, flat % k
+
+
+def rescored_refinements(refine_prob, valid, count: int, judge) -> np.ndarray:
+    """The refinements' scores under `PlannerConfig.refine_rescore`: the refine head's best `count`
+    proposals each judged at its refined pose, `judge(index [n], variant [n])` -> the evaluation head's
+    score there [n] (0 where it cannot judge), combined by `rescored_refinement` -> [M, K] (0 where not
+    re-scored). Shared by the planner and the `gpd+s2` baseline: one Stage-2 policy for any candidates."""
+    refine_prob = np.asarray(refine_prob, np.float32)
+    index, variant = refine_proposals(refine_prob, valid, count)
+    score = np.zeros_like(refine_prob)
+    if len(index):
+        score[index, variant] = rescored_refinement(refine_prob[index, variant], judge(index, variant))
+    return score
+
+
+def collision_free(choice: dict, eval_prob, refine_score, valid, collides, decide_again) -> tuple[dict, int]:
+    """The policy's choice with every refined pose it would execute checked first: while the choice is a
+    refinement, `collides(index)` -> (hits bool [K], poses [K, 4, 4], moved bool [K]) tests all the
+    variants of candidate `index` (poses: as they would be executed; moved: those that differ from the
+    plain refined pose, e.g. backed off the table); a chosen variant that hits is left out (its score
+    set to 0, which no threshold in [0, 1) passes) and `decide_again(eval_prob, refine_score, valid)`
+    decides once more. -> (choice with "pose" the refined pose to execute: the tested one where moved
+    or where the choice has none, else the choice's own; refined poses left out)."""
+    refine_score = np.array(refine_score, np.float32)
+    rejected = 0
+    while int(choice["kind"]) == KIND_REFINED:
+        index, variant = int(choice["index"]), int(choice["variant"])
+        hits, poses, moved = collides(index)
+        if not hits[variant]:
+            keep = choice.get("pose") is not None and not moved[variant]
+            return {**choice, "pose": choice["pose"] if keep else poses[variant]}, rejected
+        rejected += 1
+        refine_score[index, hits] = 0.0
+        choice = decide_again(eval_prob, refine_score, valid)
+    return choice, rejected
+
+
 def select_grasp(
     poses,
     widths,
@@ -456,6 +512,7 @@ class Planner:
         # of jit's cache key, so commit both: every Planner with this network shares one compiled Stage 2.
         self.state = jax.device_put(state, jax.devices()[0])
         self._stage2_ready = False  # whether every Stage-2 batch size has been compiled
+        self._fits_ready = False  # likewise the neighbour-fit test (`PlannerConfig.neighbour_fits`)
 
     # -- public entry points ------------------------------------------------------------------
 
@@ -561,7 +618,8 @@ class Planner:
         fallback = None if plan.ok else self._fallback_stage()
         if fallback is None:
             return plan
-        second = self._run_with(fallback, scene, objects, skipped, view, seed, start, avoid, memory)
+        fits = self.config.neighbour_fits is not None and self.config.neighbour_fits.in_fallback
+        second = self._run_with(fallback, scene, objects, skipped, view, seed, start, avoid, memory, fits)
         second.reused += plan.reused
         if second.ok:
             second.fallback = True
@@ -605,14 +663,31 @@ class Planner:
                 out[i] = result
         return out, len(kept)
 
-    def _run_with(self, stage1: Stage1, scene, objects, skipped, view, seed, start, avoid, memory=None) -> Plan:
+    def _run_with(self, stage1: Stage1, scene, objects, skipped, view, seed, start, avoid, memory=None,
+                  fits: bool = True) -> Plan:
+        """One plan with this Stage 1; fits: whether the neighbours' fits are obstacles (`neighbour_fits`)."""
         compiled = _compile_count()
         candidates, reused = self._stage1(stage1, objects, view, seed, memory)
-        plan = self._choose(stage1, scene, objects, skipped, view, seed, start, avoid, candidates, compiled)
+        fits = fits and self.config.neighbour_fits is not None
+        if fits:
+            candidates = self._without_fit_collisions(stage1, candidates)
+        plan = self._choose(stage1, scene, objects, skipped, view, seed, start, avoid, candidates, compiled, fits)
         plan.reused = reused
         return plan
 
-    def _choose(self, stage1: Stage1, scene, objects, skipped, view, seed, start, avoid, candidates, compiled) -> Plan:
+    def _without_fit_collisions(self, stage1: Stage1, candidates: list[Candidates]) -> list[Candidates]:
+        """The planner's filter (vi): candidates whose hand meets another object's fitted superquadric
+        removed (`sgjax.stage1.neighbours`). Compiled for every Stage-2 batch size at the first plan."""
+        cfg = self.config
+        sweep = stage1.config.filter.approach_clearance
+        if not self._fits_ready:
+            fits, mask = neighbours.padded_fits(candidates, cfg.neighbour_fits.object_slots)
+            neighbours.warm(fits, mask, cfg.spec, cfg.neighbour_fits, sweep, cfg.stage2_sizes)
+            self._fits_ready = True
+        return neighbours.without_fit_collisions(candidates, cfg.spec, cfg.neighbour_fits, sweep, cfg.stage2_sizes)
+
+    def _choose(self, stage1: Stage1, scene, objects, skipped, view, seed, start, avoid, candidates, compiled,
+                fits: bool = False) -> Plan:
         """Stage 2 and the decision on Stage 1's candidates (one Candidates per object)."""
         cfg = self.config
         labels = [label for label, _, _ in objects]
@@ -674,7 +749,7 @@ class Planner:
             t2 = time.perf_counter()
             timing.update(stage2_s=t2 - t1, total_s=t2 - start, compiled=_compile_count() != compiled)
         if int(choice["kind"]) == KIND_REFINED:
-            choice, rejected = self._collision_free(stage1, choice, scores, objects, candidates, view, seed)
+            choice, rejected = self._collision_free(stage1, choice, scores, objects, candidates, view, seed, fits)
             t2 = time.perf_counter()
             timing.update(stage2_s=t2 - t1, total_s=t2 - start, compiled=_compile_count() != compiled)
         kind = int(choice["kind"])
@@ -705,29 +780,25 @@ class Planner:
 
     def _rescore(self, scores: dict, poses: np.ndarray, widths: np.ndarray, scene_pad, scene_mask, seed: int,
                  thresholds) -> dict:
-        """The refinements judged again (`PlannerConfig.refine_rescore`): the refine head's best R proposals,
-        each refined pose scored by E-RNet's evaluation head on its own enlarged region (one Stage-2 call
-        on the smallest batch that holds R), a refinement's score the geometric mean of the two. Adds
-        scores["refine_score"] [M, K] (0 where not re-scored) and decides again on it -> choice."""
+        """The refinements judged again (`PlannerConfig.refine_rescore`, `rescored_refinements`): each of the
+        refine head's best proposals scored by E-RNet's evaluation head at its refined pose, in one Stage-2
+        call on the smallest batch that holds them. Adds scores["refine_score"] [M, K] (0 where not
+        re-scored) and decides again on it -> choice."""
         cfg = self.config
-        head = np.where(scores["valid"][:, None], scores["refine_prob"], -1.0)
-        k = head.shape[1]
-        flat = np.argsort(-head.reshape(-1), kind="stable")[: cfg.refine_rescore]
-        flat = flat[head.reshape(-1)[flat] > 0]
-        n = len(flat)
-        index, variant = flat // k, flat % k
-        slots = cfg.stage2_slots(n)
-        # Fixed shapes (a Stage-2 batch size), so that no plan compiles: row 0 fills the padding slots.
-        pad_index, pad_variant = np.zeros(slots, np.int64), np.zeros(slots, np.int64)
-        pad_index[:n], pad_variant[:n] = index, variant
-        refined = np.asarray(gripper.refined_pose(poses[pad_index], pad_variant, cfg.spec), np.float32)
-        refined_widths = np.where(np.arange(slots) < n, widths[pad_index], np.nan).astype(np.float32)
-        out, _ = self._score(scene_pad, scene_mask, refined, refined_widths, np.arange(slots) < n, seed, thresholds)
-        judged = np.where(out["valid"][:n], out["eval_prob"][:n], 0.0)
-        score = np.zeros_like(scores["refine_prob"], np.float32)
-        score[index, variant] = rescored_refinement(scores["refine_prob"][index, variant], judged)
-        scores["refine_score"] = score
-        return self._decide(scores["eval_prob"], score, scores["valid"])
+
+        def judge(index, variant):
+            n = len(index)
+            slots = cfg.stage2_slots(n)
+            # Fixed shapes (a Stage-2 batch size), so that no plan compiles: row 0 fills the padding slots.
+            pad_index, pad_variant = np.zeros(slots, np.int64), np.zeros(slots, np.int64)
+            pad_index[:n], pad_variant[:n] = index, variant
+            refined = np.asarray(gripper.refined_pose(poses[pad_index], pad_variant, cfg.spec), np.float32)
+            refined_widths = np.where(np.arange(slots) < n, widths[pad_index], np.nan).astype(np.float32)
+            out, _ = self._score(scene_pad, scene_mask, refined, refined_widths, np.arange(slots) < n, seed, thresholds)
+            return np.where(out["valid"][:n], out["eval_prob"][:n], 0.0)
+
+        scores["refine_score"] = rescored_refinements(scores["refine_prob"], scores["valid"], cfg.refine_rescore, judge)
+        return self._decide(scores["eval_prob"], scores["refine_score"], scores["valid"])
 
     def _decide(self, eval_prob: np.ndarray, refine_score: np.ndarray, valid: np.ndarray) -> dict:
         """`decide` on the host's scores [M], [M, K], [M], padded to the Stage-2 batch size that holds M so
@@ -743,18 +814,16 @@ class Planner:
         return {"index": index, "kind": kind, "variant": variant, "score": best, "pose": None}
 
     def _collision_free(self, stage1: Stage1, choice: dict, scores: dict, objects: list, candidates: list, view,
-                        seed: int):
+                        seed: int, fits: bool = False):
         """The policy's choice with every refined pose it would execute checked by Stage 1's obstacle and
-        table tests first ((iv), (v) of `Stage1.collisions`): Stage 1 checked each candidate's initial
-        pose, but a refinement deepens and turns the hand, and E-RNet's crop does not show all the
-        obstacles or the table. A refined pose that fails is left out and the policy decides again
-        (another refinement, or none). -> (choice, refined poses left out)."""
+        table tests first ((iv), (v) of `Stage1.collisions`, and with `fits` the other objects' fitted
+        superquadrics, `neighbour_fits`): Stage 1 checked each candidate's initial pose, but a refinement deepens and
+        turns the hand, and E-RNet's crop does not show all the obstacles or the table. A refined pose
+        that fails is left out and the policy decides again (another refinement, or none)
+        (`collision_free`). -> (choice, refined poses left out)."""
         cfg = self.config
-        # The refinements' scores the policy decided on: the re-scored ones when `_rescore` ran.
-        refine_prob = np.array(scores.get("refine_score", scores["refine_prob"]), np.float32)
-        rejected = 0
-        while int(choice["kind"]) == KIND_REFINED:
-            index, variant = int(choice["index"]), int(choice["variant"])
+
+        def collides(index):
             o, r = int(scores["object"][index]), int(scores["object_candidate"][index])
             _, cloud, obstacles = objects[o]
             # Every variant of this candidate in one call: the policy may turn to another of them next.
@@ -767,15 +836,17 @@ class Planner:
             # The obstacles and the table, not the target: the target lies in E-RNet's crop, and its refine
             # head was trained on how these very refinements fared against it in simulation.
             hits = found["collision_scene"] | found["below_support"]
-            if not hits[variant]:
-                lifted = not np.array_equal(found["poses"][variant], variants[variant])
-                pose = found["poses"][variant] if lifted or choice["pose"] is None else choice["pose"]
-                return {**choice, "pose": pose}, rejected
-            # A score of 0 never exceeds a threshold in [0, 1): these variants can no longer be chosen.
-            rejected += 1
-            refine_prob[index, hits] = 0.0
-            choice = self._decide(scores["eval_prob"], refine_prob, scores["valid"])
-        return choice, rejected
+            if fits:  # and the other objects' hidden sides, as the candidates were
+                fitted, mask = neighbours.padded_fits(candidates, cfg.neighbour_fits.object_slots)
+                hits = hits | neighbours.fit_hits(found["poses"], widths, np.full(len(widths), o, np.int32), fitted, mask,
+                                                  cfg.spec, cfg.neighbour_fits, stage1.config.filter.approach_clearance,
+                                                  cfg.stage2_sizes)
+            moved = np.any(found["poses"] != variants, axis=(1, 2))
+            return hits, found["poses"], moved
+
+        # The refinements' scores the policy decided on: the re-scored ones when `_rescore` ran.
+        refine_score = scores.get("refine_score", scores["refine_prob"])
+        return collision_free(choice, scores["eval_prob"], refine_score, scores["valid"], collides, self._decide)
 
     def _stage2_call(self, scene_pad, scene_mask, poses, widths, slots, seed: int, thresholds):
         """(function, arguments, static key) of one Stage-2 call, for `exported.call` / `exported.ready`."""

@@ -264,6 +264,9 @@ def rigged_ernet(eval_bias, refine_bias):
 
 
 def test_gpd_with_stage2_follows_the_decision_policy(observation):
+    """gpd+s2 decides as the planner: the best evaluation > 0.7; else a refinement, by default re-scored at
+    its refined pose (the geometric mean of the two heads, `sgjax.planner.rescored_refinements`) and
+    executed only once it passes the generator's collision test; else no grasp, and why."""
     points, labels, view = observation
     evaluated = make_method("gpd+s2", model=rigged_ernet([-2.0, 2.0], [-3.0, -3.0, -3.0]), config=CONFIG)
     decision = evaluated.plan(points, labels, view, seed=5)
@@ -271,19 +274,46 @@ def test_gpd_with_stage2_follows_the_decision_policy(observation):
     cands = evaluated.generator(points, labels, view, 5)
     assert decision.info["kind"] == "evaluated" and decision.score == pytest.approx(0.982, abs=1e-3)
     np.testing.assert_allclose(decision.pose, cands.poses[decision.info["index"]], atol=1e-6)
-    # Low evaluation, high refinement of variant 1: the candidate is refined (deepened, rotated 0 deg).
-    refined = make_method("gpd+s2", model=rigged_ernet([2.0, -2.0], [-3.0, 3.0, -3.0]), config=CONFIG)
+    # Evaluation 0.69 everywhere (below 0.7), refinement 0.95 for variant 1: re-scored, sqrt(0.95 x 0.69)
+    # = 0.81 passes, so the candidate is refined (deepened, rotated 0 deg), and its refined pose is free.
+    refined = make_method("gpd+s2", model=rigged_ernet([0.0, 0.8], [-3.0, 3.0, -3.0]), config=CONFIG)
     compiled = ernet.score._cache_size()
     decision = refined.plan(points, labels, view, seed=5)
-    assert ernet.score._cache_size() == compiled  # same network shapes, same compile
+    assert ernet.score._cache_size() == compiled  # same network shapes, same compile (the re-scoring too)
+    p_eval, p_refine = 1 / (1 + np.exp(-0.8)), 1 / (1 + np.exp(-3.0))  # softmax of (0, 0.8); sigmoid of 3
     assert decision.info["kind"] == "refined" and decision.info["refine_variant"] == 1
+    assert decision.score == pytest.approx(np.sqrt(p_eval * p_refine), abs=1e-3)
+    # The refined pose, backed off the table along its approach where deepening reached into it (as the planner).
     expected = np.asarray(gripper.refined_pose(cands.poses[decision.info["index"]], 1, SPEC))
-    np.testing.assert_allclose(decision.pose, expected, atol=1e-5)
+    np.testing.assert_allclose(decision.pose[:3, :3], expected[:3, :3], atol=1e-5)
+    back = expected[:3, 3] - decision.pose[:3, 3]
+    np.testing.assert_allclose(back, np.dot(back, expected[:3, 2]) * expected[:3, 2], atol=1e-6)
+    assert 0.0 <= np.dot(back, expected[:3, 2]) <= CONFIG.stage1.max_lift + 1e-6
+    # With the candidates before the first whose refinement collides left out (as failed grasps), the
+    # policy meets that one first: it passes over the refinements that collide (ties: lowest index first)
+    # and executes the first that does not.
+    hits = [baselines._RefinedCollisions(cands, points, labels, CONFIG, 5)(i)[0][1] for i in range(cands.n)]
+    k = hits.index(True)
+    decision = refined.plan(points, labels, view, seed=5, avoid=cands.poses[:k])
+    kept = baselines.without_avoided(cands, cands.poses[:k], SPEC)
+    collides = baselines._RefinedCollisions(kept, points, labels, CONFIG, 5)
+    index = decision.info["index"]
+    assert decision.info["kind"] == "refined" and not collides(index)[0][1]
+    assert decision.info["refinements_rejected"] == sum(collides(i)[0][1] for i in range(index)) >= 1
+    np.testing.assert_allclose(decision.pose, collides(index)[1][1], atol=1e-6)
+    # The paper's rule (the refine head alone) refines what the re-scoring sinks: evaluation 0.018.
+    low = rigged_ernet([2.0, -2.0], [-3.0, 3.0, -3.0])
+    sunk = make_method("gpd+s2", model=low, config=CONFIG).plan(points, labels, view, seed=5)
+    assert sunk.pose is None and "best re-scored refinement 0.13 <= 0.7" in sunk.reason
+    paper = make_method("gpd+s2", model=low, config=dataclasses.replace(CONFIG, refine_rescore=0)).plan(points, labels, view,
+                                                                                                       seed=5)
+    assert paper.info["kind"] == "refined" and paper.score == pytest.approx(p_refine, abs=1e-3)
     # Neither above 0.7 (or refinement off): no grasp, and the reason says why.
-    never = make_method("gpd+s2", model=rigged_ernet([2.0, -2.0], [-3.0, 3.0, -3.0]),
-                        config=dataclasses.replace(CONFIG, use_refinement=False))
+    never = make_method("gpd+s2", model=low, config=dataclasses.replace(CONFIG, use_refinement=False))
     decision = never.plan(points, labels, view, seed=5)
     assert decision.pose is None and "refinement disabled" in decision.reason
+    with pytest.raises(ValueError, match="refine_rescore"):
+        dataclasses.replace(CONFIG, refine_rescore=-1)
 
 
 @pytest.mark.slow  # Stage 1's compile (shared with the planner tests in a full run)

@@ -17,6 +17,9 @@ from sgjax.geometry.gripper import (
     deepened_pose,
     enlarged_region_poses,
     gripper_boxes,
+    hand_boxes,
+    hand_samples,
+    in_box,
     near_grasps,
     points_in_closing_region,
     points_in_enlarged_region,
@@ -389,3 +392,28 @@ def test_near_grasps_is_the_same_grasp_up_to_the_jaw_symmetry():
     assert near_grasps(poses, base[None], SPEC, max_distance=0.02, max_angle_deg=20, xp=np)[[2, 6]].all()
     with pytest.raises(ValueError, match=r"\[K, 4, 4\] and \[F, 4, 4\]"):
         near_grasps(poses, base, SPEC, xp=np)
+
+
+@pytest.mark.parametrize("sweep", [0.0, 0.05])
+def test_hand_samples_fill_the_swept_hand_boxes(sweep):
+    """Every sample lies in a finger or the palm (swept back by `sweep`), each box's corners are samples,
+    neighbouring samples along an axis are at most `step` apart, and the count does not depend on the width."""
+    spec, step = GripperSpec(), 0.006
+    widths = np.array([0.0, 0.03, spec.max_opening], np.float32)
+    points = np.asarray(hand_samples(spec, widths, sweep, step))
+    assert points.shape[:1] == (3,) and points.shape[2] == 3
+    for w, pts in zip(widths, points):
+        boxes = hand_boxes(spec, float(w), 0.0, sweep)
+        inside = np.zeros(len(pts), bool)
+        for box in boxes:
+            inside |= np.asarray(in_box(pts[:, 0], pts[:, 1], pts[:, 2], (np.add(box[0], -1e-6), np.add(box[1], 1e-6))))
+        assert inside.all()
+        for lo, hi in boxes:
+            for corner in np.array(np.meshgrid(*zip(lo, hi), indexing="ij")).reshape(3, -1).T:
+                assert np.min(np.linalg.norm(pts - corner, axis=1)) < 1e-6
+            in_this = pts[np.all((pts >= np.add(lo, -1e-6)) & (pts <= np.add(hi, 1e-6)), axis=1)]
+            for axis in range(3):
+                gaps = np.diff(np.unique(np.round(in_this[:, axis], 6)))
+                assert gaps.max() <= step + 1e-6
+    with pytest.raises(ValueError, match="step"):
+        hand_samples(spec, 0.05, sweep, 0.0)

@@ -534,3 +534,35 @@ def test_cli_plan(tmp_path, capsys, monkeypatch, small_db):
     monkeypatch.setattr(checkpoint, "ERNET_DEFAULT_DIR", tmp_path / "ernet_default")
     assert main(["plan", str(tmp_path / "scene.npy"), "--mask", str(tmp_path / "mask.npy"), "--db", str(db)]) == 2
     assert "sgjax train" in capsys.readouterr().err
+
+
+def test_candidates_meeting_a_neighbours_fit_are_removed(planner):
+    """A tall box with a low one close behind it, the low one's side facing it hidden from the camera:
+    the planner removes the candidates whose hand meets the other object's fitted superquadric (not
+    their observed points: filter (iv) has those), exactly those, counted per object; off, they stay."""
+    from sgjax.stage1 import neighbours
+
+    rng = np.random.default_rng(0)
+    xs, ys = np.meshgrid(np.linspace(-0.25, 0.25, 40), np.linspace(-0.25, 0.25, 40))
+    table = np.c_[xs.ravel(), ys.ravel(), rng.normal(0, 0.001, xs.size)]
+    tall, low = box((0.0, 0.0), (0.02, 0.025, 0.05), 0, seed=0), box((-0.06, 0.0), (0.02, 0.03, 0.02), 0, seed=1)
+    points = np.concatenate([table, tall, low])
+    labels = np.concatenate([np.full(len(table), -1), np.zeros(len(tall), int), np.ones(len(low), int)])
+    config = planner.config
+    try:
+        with_fits = planner.plan(points, labels, viewpoint=CAMERA)
+        planner.config = dataclasses.replace(config, neighbour_fits=None)
+        without = planner.plan(points, labels, viewpoint=CAMERA)
+    finally:
+        planner.config = config
+    fit_cfg = config.neighbour_fits
+    fits, mask = neighbours.padded_fits(without.candidates, fit_cfg.object_slots)
+    assert mask[:2].all()
+    removed = 0
+    for o, (kept, everything) in enumerate(zip(with_fits.candidates, without.candidates)):
+        hits = neighbours.fit_hits(everything.poses.astype(np.float32), everything.widths.astype(np.float32),
+                                   np.full(len(everything), o, np.int32), fits, mask, SPEC, fit_cfg, 0.05, (64, 512))
+        np.testing.assert_array_equal(kept.poses, everything.poses[~hits])
+        assert kept.counts["collision_fit"] == hits.sum() and "collision_fit" not in everything.counts
+        removed += hits.sum()
+    assert removed > 0 and with_fits.n_candidates == without.n_candidates - removed

@@ -358,6 +358,24 @@ def hand_boxes(spec: GripperSpec, width, margin: float = 0.0, sweep: float = 0.0
     return right, left, palm
 
 
+def hand_samples(spec: GripperSpec, width, sweep: float = 0.0, step: float = 0.005) -> jax.Array:
+    """Points filling the open hand (`hand_boxes`: both fingers and the palm, swept back by `sweep` along
+    -z), gripper frame: width [...] -> [..., P, 3], a grid on each box with spacing <= `step` along
+    every axis, its faces included. P depends on the spec, sweep and step only (the width moves the
+    fingers' grids, it does not resize them), so a batch of widths has one shape."""
+    if not step > 0.0:
+        raise ValueError(f"step must be > 0 metres, got {step}")
+    w = jnp.asarray(width, jnp.float32)[..., None]  # [..., 1]
+    parts = []
+    for (lo, hi), (lo0, hi0) in zip(hand_boxes(spec, w, 0.0, sweep), hand_boxes(spec, 0.0, 0.0, sweep)):
+        counts = [max(2, int(np.ceil((b - a) / step - 1e-6)) + 1) for a, b in zip(lo0, hi0)]
+        unit = np.stack(np.meshgrid(*(np.linspace(0.0, 1.0, c) for c in counts), indexing="ij"), -1).reshape(-1, 3)
+        corner = lambda v: jnp.stack(jnp.broadcast_arrays(*(jnp.asarray(c, jnp.float32) for c in v), w), -1)[..., :3]
+        lo_, hi_ = corner(lo), corner(hi)  # [..., 1, 3]
+        parts.append(lo_ + jnp.asarray(unit, jnp.float32) * (hi_ - lo_))
+    return jnp.concatenate(parts, -2)
+
+
 def in_box(x: jax.Array, y: jax.Array, z: jax.Array, box: AxisBox) -> jax.Array:
     """The one point-in-region test: gripper-frame coordinates x, y, z (equal or broadcasting shapes)
     inside the closed box (lo, hi) -> bool. NaN coordinates are never inside."""

@@ -273,3 +273,15 @@ def evaluate(poses, valid, points, mask, normals, table_z, config: GPDConfig) ->
     ok, score, count = ok | ok0, jnp.where(use0, score0, score), jnp.where(use0, count0, count)
     out = poses.at[:, :3, 3].set(origin + shift[:, None] * rotation[:, :, 0])
     return {"poses": out, "widths": width, "scores": jnp.where(ok, score, -1.0), "valid": ok, "points_between": count}
+
+
+@functools.partial(jax.jit, static_argnames="config")
+def hand_collisions(poses, widths, points, obstacle_mask, table_z, config: GPDConfig) -> jax.Array:
+    """The generator's own collision test on given hands (e.g. refined ones, before they are executed):
+    poses [K, 4, 4], widths [K], points [N, 3] with obstacle_mask [N] (the points that count: the cloud
+    of `prepare_labelled_cloud`, e.g. without the grasped object's) and table_z [] -> bool [K]: the
+    fingers or palm, swept back over `approach_clearance`, meet an obstacle point, or the hand comes
+    within `table_clearance` of the table."""
+    local = points_to_frame(points, poses[:, :3, :3], poses[:, :3, 3])
+    hits = jnp.any(swept_hits(local, widths, config.spec, config.approach_clearance) & obstacle_mask, -1)
+    return hits | (lowest_height(poses, widths, config.spec, _table_plane(table_z)) < config.table_clearance)

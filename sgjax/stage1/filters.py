@@ -35,7 +35,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sgjax.geometry.gripper import GripperSpec, local_regions, lowest_height, segment_regions, to_gripper_frame
+from sgjax.geometry.gripper import (GripperSpec, hand_boxes, hand_samples, local_regions, lowest_height, segment_regions,
+                                    to_gripper_frame)
 from sgjax.geometry.superquadric import Superquadric, log_implicit_local
 
 # In the order the tests are reported (`removal_counts`): (iv) runs last, on what passed the others.
@@ -352,6 +353,53 @@ def _scene_collisions(poses, widths, scene_points, scene_mask, spec: GripperSpec
     else:
         in_closing, in_hand = local_regions(scene_local, widths, spec, cfg.obstacle_margin, sweep)
     return jnp.any((in_closing | in_hand) & scene_mask, -1)
+
+
+def fit_collisions(poses, widths, owner, fits: Superquadric, fit_mask, spec: GripperSpec = GripperSpec(),
+                   margin: float = 0.002, sweep: float = 0.05, step: float = 0.006, nearest: int = 4,
+                   chunk: int | None = 64) -> jax.Array:
+    """Whether the hand meets another object's fitted superquadric: the neighbours' hidden sides.
+
+    Filter (iv) sees a neighbour's observed points and, with `shadow_depth`, the space they hide along
+    the camera ray; a finger that passes a neighbour's unseen side, where no observed point shadows it
+    (the side facing away, or behind the target), meets nothing there. The neighbour's fitted
+    superquadric (Stage 1 fits every object) stands for its whole shape.
+
+    poses [K, 4, 4], widths [K]; owner int [K]: the object each candidate grasps (its own fit is not an
+    obstacle; -1: none); fits: Superquadric with leading axis [O] (object o's fit at row o); fit_mask
+    bool [O] (False: no fit, padding). The hand (fingers and palm, open to the width, swept back by
+    `sweep` along the approach: `gripper.hand_samples`, grid spacing `step`) meets a fit when one of
+    its sample points lies inside the fit with every semi-axis grown by `margin` metres. Each hand is
+    tested against the `nearest` fits whose bounding spheres come closest to its own (a fit farther
+    than that cannot meet it; more than `nearest` fits within reach of one hand are rare: the test is
+    exact whenever nearest >= O) -> bool [K]. In chunks of `chunk` candidates ([chunk, nearest, P]).
+    """
+    fits, fit_mask = jax.tree.map(jnp.asarray, fits), jnp.asarray(fit_mask, bool)
+    o = fit_mask.shape[0]
+    t = min(nearest, o)
+    grown = fits.scale + margin
+    # The hand's bounding sphere: about the centre of its swept boxes at the widest opening.
+    boxes = hand_boxes(spec, spec.max_opening, 0.0, sweep)
+    lo = np.min([np.asarray(box[0], np.float32) for box in boxes], 0)
+    hi = np.max([np.asarray(box[1], np.float32) for box in boxes], 0)
+    centre, radius = jnp.asarray(0.5 * (lo + hi)), float(0.5 * np.linalg.norm(hi - lo))
+    fit_radius = jnp.linalg.norm(grown, axis=-1)  # a superquadric with exponents <= 2 lies in its box
+
+    def part(p, w, own):
+        hand_centre = p[:, :3, :3] @ centre + p[:, :3, 3]  # [k, 3]
+        gap = jnp.linalg.norm(hand_centre[:, None] - fits.translation[None], axis=-1) - fit_radius[None] - radius
+        other = fit_mask[None, :] & (jnp.arange(o)[None, :] != own[:, None]) & (gap <= 0.0)  # [k, O]
+        _, pick = jax.lax.top_k(jnp.where(other, -gap, -jnp.inf), t)  # [k, t]
+        near = jnp.take_along_axis(other, pick, 1)
+        rot_o, t_o = fits.rotation[pick], fits.translation[pick]  # [k, t, 3, 3], [k, t, 3]
+        # p_local = R_o^T (R_k p + t_k - t_o): one affine map per (candidate, fit).
+        rot = jnp.einsum("ktji,kjl->ktil", rot_o, p[:, :3, :3])
+        shift = jnp.einsum("ktji,ktj->kti", rot_o, p[:, None, :3, 3] - t_o)
+        local = jnp.einsum("ktil,kpl->ktpi", rot, hand_samples(spec, w, sweep, step)) + shift[:, :, None, :]
+        inside = jnp.any(log_implicit_local(local, grown[pick], fits.epsilon[pick]) < 0.0, -1)  # [k, t]
+        return jnp.any(inside & near, -1)
+
+    return map_chunks(part, chunk, poses, widths, owner)
 
 
 def pose_collisions(poses, widths, object_points, object_mask, scene_points, scene_mask, support_plane,

@@ -1,0 +1,133 @@
+"""The neighbours' fitted superquadrics as obstacles: the sides of other objects the camera did not see.
+
+Filter (iv) tests the hand against the observed obstacle points and, along the camera ray, the space
+each hides (`FilterConfig.shadow_depth`). What it cannot see is a neighbour's side that no observed
+point shadows: the side facing away from the camera where the finger comes down beside it, or a
+neighbour partly behind the target. On seen-20 (N = 30), replayed, every approach collision of the
+planner's grasps was a finger into such a side (docs/benchmark.md). Stage 1 fits a superquadric to
+every object anyway; this test takes each neighbour's fit for its whole shape and removes the
+candidates whose hand (fingers and palm swept back over the approach) meets one
+(`sgjax.stage1.filters.fit_collisions`).
+
+It needs every object's fit at once, so it runs after Stage 1 (the planner's "filter (vi)", on the
+candidates of all objects of a plan) rather than inside it, whose batches see a few objects each.
+Fixed shapes: candidates padded to given slot sizes, fits to `object_slots` (or the next power of two
+above), so repeated plans do not recompile.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from sgjax.geometry.gripper import GripperSpec
+from sgjax.geometry.superquadric import Superquadric
+from sgjax.stage1.filters import fit_collisions
+from sgjax.stage1.pipeline import Candidates
+
+
+@dataclasses.dataclass(frozen=True)
+class NeighbourFitConfig:
+    """margin: each fit's semi-axes grown by this (metres) before the test; step: the hand's sample
+    grid spacing (metres); nearest: fits tested per hand, those whose bounding spheres come closest;
+    object_slots: fits padded to this many (more objects: the next power of two); in_fallback: also in
+    the planner's second plan (`PlannerConfig.fallback_filter`), which by default does without it, as
+    without the other filters beyond the paper's: there it is the objects the first plan found nothing
+    for, and a fit is a guess that may cover the space a good grasp needs (docs/benchmark.md)."""
+
+    margin: float = 0.002
+    step: float = 0.006
+    nearest: int = 4
+    object_slots: int = 32
+    in_fallback: bool = False
+
+    def __post_init__(self):
+        if not (np.isfinite(self.margin) and self.margin >= 0.0):
+            raise ValueError(f"margin must be a finite number >= 0 (metres), got {self.margin}")
+        if not self.step > 0.0:
+            raise ValueError(f"step must be > 0 metres, got {self.step}")
+        if self.nearest < 1 or self.object_slots < 1:
+            raise ValueError(f"nearest and object_slots must be >= 1, got {self.nearest} and {self.object_slots}")
+
+
+def padded_fits(candidates: list[Candidates], slots: int) -> tuple[Superquadric, np.ndarray]:
+    """Every object's fitted superquadric (row i: candidates[i]'s), padded to the smallest power of two
+    >= max(slots, len(candidates)) -> (Superquadric with leading axis [O], mask bool [O]: a valid fit)."""
+    n = len(candidates)
+    o = max(slots, 1 << max(n - 1, 0).bit_length())
+    scale = np.ones((o, 3), np.float32)
+    epsilon = np.ones((o, 2), np.float32)
+    rotation = np.tile(np.eye(3, dtype=np.float32), (o, 1, 1))
+    translation = np.zeros((o, 3), np.float32)
+    mask = np.zeros(o, bool)
+    for i, c in enumerate(candidates):
+        fit = c.superquadric
+        if fit is None or not bool(fit.valid):
+            continue
+        scale[i], epsilon[i] = np.asarray(fit.scale), np.asarray(fit.epsilon)
+        rotation[i], translation[i] = np.asarray(fit.rotation), np.asarray(fit.translation)
+        mask[i] = True
+    return Superquadric(scale, epsilon, rotation, translation), mask
+
+
+@functools.partial(jax.jit, static_argnames=("spec", "config", "sweep"))
+def _hits(poses, widths, owner, fits, mask, spec: GripperSpec, config: NeighbourFitConfig, sweep: float):
+    return fit_collisions(poses, widths, owner, fits, mask, spec, config.margin, sweep, config.step, config.nearest)
+
+
+def fit_hits(poses, widths, owner, fits: Superquadric, mask, spec: GripperSpec, config: NeighbourFitConfig,
+             sweep: float, sizes: tuple[int, ...]) -> np.ndarray:
+    """`fit_collisions` on the host's poses [K, 4, 4], widths [K], owner int [K] (row in fits), padded to
+    the smallest of `sizes` that holds them (several calls of the largest when none does) -> bool [K]."""
+    k = len(widths)
+    out = np.zeros(k, bool)
+    for begin in range(0, k, sizes[-1]):
+        n = min(k - begin, sizes[-1])
+        slots = next(s for s in sizes if s >= n)
+        p = np.tile(np.eye(4, dtype=np.float32), (slots, 1, 1))
+        w = np.zeros(slots, np.float32)
+        own = np.full(slots, -1, np.int32)
+        p[:n], w[:n], own[:n] = poses[begin:begin + n], widths[begin:begin + n], owner[begin:begin + n]
+        out[begin:begin + n] = np.asarray(_hits(p, w, own, fits, mask, spec, config, float(sweep)))[:n]
+    return out
+
+
+def warm(fits: Superquadric, mask, spec: GripperSpec, config: NeighbourFitConfig, sweep: float,
+         sizes: tuple[int, ...]) -> None:
+    """Compile the test for every size in `sizes` with these fits' shape, so no later plan stalls."""
+    for size in sizes:
+        fit_hits(np.tile(np.eye(4, dtype=np.float32), (size, 1, 1)), np.zeros(size, np.float32),
+                 np.full(size, -1, np.int32), fits, mask, spec, config, sweep, (size,))
+
+
+def without_fit_collisions(candidates: list[Candidates], spec: GripperSpec, config: NeighbourFitConfig,
+                           sweep: float, sizes: tuple[int, ...]) -> list[Candidates]:
+    """Each object's candidates without those whose hand meets another object's fit: one Candidates per
+    object, with counts["collision_fit"] (how many were removed) and, when none is left, the reason.
+    The given Candidates are not changed (a `Stage1Memory` may hold them)."""
+    counts = [len(c) for c in candidates]
+    if sum(counts) == 0 or len(candidates) < 2:
+        return [dataclasses.replace(c, counts={**c.counts, "collision_fit": 0}) for c in candidates]
+    fits, mask = padded_fits(candidates, config.object_slots)
+    poses = np.concatenate([np.asarray(c.poses, np.float32).reshape(-1, 4, 4) for c in candidates])
+    widths = np.concatenate([np.asarray(c.widths, np.float32) for c in candidates])
+    owner = np.repeat(np.arange(len(candidates), dtype=np.int32), counts)
+    hit = np.split(fit_hits(poses, widths, owner, fits, mask, spec, config, sweep, sizes), np.cumsum(counts)[:-1])
+    return [_kept(c, ~h) for c, h in zip(candidates, hit)]
+
+
+def _kept(c: Candidates, keep: np.ndarray) -> Candidates:
+    removed = int(len(keep) - keep.sum())
+    counts = {**c.counts, "collision_fit": removed, "kept": int(keep.sum())}
+    rows = np.flatnonzero(keep)
+    out = dataclasses.replace(
+        c, poses=c.poses[rows], widths=c.widths[rows], primitive_id=c.primitive_id[rows],
+        template_id=c.template_id[rows], match_rank=c.match_rank[rows], match_score=c.match_score[rows],
+        points_between=c.points_between[rows], counts=counts)
+    if removed and not len(rows):
+        out.reason = f"all {removed} candidates left by Stage 1 meet a neighbour's fitted superquadric"
+    return out
