@@ -670,21 +670,22 @@ class Planner:
         candidates, reused = self._stage1(stage1, objects, view, seed, memory)
         fits = fits and self.config.neighbour_fits is not None
         if fits:
-            candidates = self._without_fit_collisions(stage1, candidates)
+            candidates = self._without_fit_collisions(stage1, candidates, objects, seed)
         plan = self._choose(stage1, scene, objects, skipped, view, seed, start, avoid, candidates, compiled, fits)
         plan.reused = reused
         return plan
 
-    def _without_fit_collisions(self, stage1: Stage1, candidates: list[Candidates]) -> list[Candidates]:
-        """The planner's filter (vi): candidates whose hand meets another object's fitted superquadric
-        removed (`sgjax.stage1.neighbours`). Compiled for every Stage-2 batch size at the first plan."""
+    def _without_fit_collisions(self, stage1: Stage1, candidates: list[Candidates], objects: list,
+                                seed: int) -> list[Candidates]:
+        """Candidates whose hand meets another object's fitted superquadric removed
+        (`sgjax.stage1.neighbours`). Compiled for every Stage-2 batch size at the first plan."""
         cfg = self.config
         sweep = stage1.config.filter.approach_clearance
         if not self._fits_ready:
-            fits, mask = neighbours.padded_fits(candidates, cfg.neighbour_fits.object_slots)
-            neighbours.warm(fits, mask, cfg.spec, cfg.neighbour_fits, sweep, cfg.stage2_sizes)
+            neighbours.warm(candidates, cfg.spec, cfg.neighbour_fits, sweep, cfg.stage2_sizes)
             self._fits_ready = True
-        return neighbours.without_fit_collisions(candidates, cfg.spec, cfg.neighbour_fits, sweep, cfg.stage2_sizes)
+        return neighbours.without_fit_collisions(candidates, [cloud for _, cloud, _ in objects], cfg.spec,
+                                                 cfg.neighbour_fits, sweep, cfg.stage2_sizes, seed)
 
     def _choose(self, stage1: Stage1, scene, objects, skipped, view, seed, start, avoid, candidates, compiled,
                 fits: bool = False) -> Plan:
@@ -837,10 +838,11 @@ class Planner:
             # head was trained on how these very refinements fared against it in simulation.
             hits = found["collision_scene"] | found["below_support"]
             if fits:  # and the other objects' hidden sides, as the candidates were
-                fitted, mask = neighbours.padded_fits(candidates, cfg.neighbour_fits.object_slots)
+                fitted, mask, pairs = neighbours.obstacle_fits(candidates, [c for _, c, _ in objects], cfg.neighbour_fits,
+                                                               seed)
                 hits = hits | neighbours.fit_hits(found["poses"], widths, np.full(len(widths), o, np.int32), fitted, mask,
                                                   cfg.spec, cfg.neighbour_fits, stage1.config.filter.approach_clearance,
-                                                  cfg.stage2_sizes)
+                                                  cfg.stage2_sizes, pairs)
             moved = np.any(found["poses"] != variants, axis=(1, 2))
             return hits, found["poses"], moved
 

@@ -16,7 +16,7 @@ from sgjax.geometry.gripper import GripperSpec, hand_samples
 from sgjax.geometry.superquadric import Superquadric, implicit_function
 from sgjax.stage1.ems import FitResult
 from sgjax.stage1.filters import fit_collisions
-from sgjax.stage1.neighbours import NeighbourFitConfig, fit_hits, padded_fits, without_fit_collisions
+from sgjax.stage1.neighbours import NeighbourFitConfig, fit_hits, obstacle_fits, padded_fits, without_fit_collisions
 from sgjax.stage1.pipeline import Candidates
 
 SPEC = GripperSpec()
@@ -104,7 +104,8 @@ def test_without_fit_collisions_removes_counts_and_explains():
     given = [candidates(poses[:40], widths[:40], fit_result(sqs[0])), candidates(poses[40:], widths[40:], fit_result(sqs[1])),
              candidates(poses[:0], widths[:0], fit_result(sqs[2], valid=False))]
     config = NeighbourFitConfig(margin=0.002, step=STEP, nearest=4, object_slots=8)
-    out = without_fit_collisions(given, SPEC, config, SWEEP, (64, 128))
+    far = [np.full((10, 3), 5.0)] * 3  # observed points far from every fit: no fit is discounted
+    out = without_fit_collisions(given, far, SPEC, config, SWEEP, (64, 128))
     stacked, fit_mask = padded_fits(given, 8)
     assert fit_mask.tolist() == [True, True] + [False] * 6
     expected = brute_force(stacked, fit_mask, poses, widths, np.r_[np.zeros(40, np.int32), np.ones(24, np.int32)], 0.002)
@@ -118,15 +119,27 @@ def test_without_fit_collisions_removes_counts_and_explains():
     inside = np.tile(np.eye(4, dtype=np.float32), (5, 1, 1))
     inside[:, :3, 3] = np.asarray(sqs[1].translation)
     blocked = without_fit_collisions([candidates(inside, np.full(5, 0.03, np.float32), fit_result(sqs[0])), given[1]],
-                                     SPEC, config, SWEEP, (64,))
+                                     far[:2], SPEC, config, SWEEP, (64,))
     assert len(blocked[0]) == 0 and "all 5 candidates" in blocked[0].reason and "fitted superquadric" in blocked[0].reason
+    # ... unless object 1's fit holds object 0's own observed points (more than max_overlap of them): then
+    # that fit is wrong where object 0's grasps go, and it is no obstacle for them (it still is for others).
+    centre = np.asarray(sqs[1].translation)
+    own = np.r_[np.tile(centre, (3, 1)), np.full((97, 3), 5.0)]  # 3 % of object 0's points inside fit 1
+    kept = without_fit_collisions([candidates(inside, np.full(5, 0.03, np.float32), fit_result(sqs[0])), given[1]],
+                                  [own, far[1]], SPEC, config, SWEEP, (64,))
+    assert len(kept[0]) == 5 and kept[0].counts["collision_fit"] == 0
+    _, _, pairs = obstacle_fits(given[:2], [own, far[1]], config)
+    assert pairs[:2, :2].tolist() == [[False, False], [True, False]]
+    _, _, pairs = obstacle_fits(given[:2], [own[1:], far[1]], dataclasses.replace(config, max_overlap=0.025))
+    assert pairs[0, 1]  # 2 of 99 points: within 2.5 %
     # Many candidates: several calls of the largest size give what one call gives.
     many = fit_hits(np.tile(poses, (3, 1, 1)), np.tile(widths, 3), np.tile(owner, 3), fits, mask, SPEC, config, SWEEP, (64,))
     np.testing.assert_array_equal(many, np.tile(brute_force(fits, mask, poses, widths, owner, 0.002), 3))
 
 
 @pytest.mark.parametrize("change, message", [({"margin": -0.001}, "margin"), ({"margin": float("nan")}, "margin"),
-                                             ({"step": 0.0}, "step"), ({"nearest": 0}, "nearest")])
+                                             ({"step": 0.0}, "step"), ({"nearest": 0}, "nearest"),
+                                             ({"max_overlap": 1.5}, "max_overlap")])
 def test_bad_config_raises(change, message):
     with pytest.raises(ValueError, match=message):
         dataclasses.replace(NeighbourFitConfig(), **change)

@@ -556,12 +556,12 @@ def test_candidates_meeting_a_neighbours_fit_are_removed(planner):
     finally:
         planner.config = config
     fit_cfg = config.neighbour_fits
-    fits, mask = neighbours.padded_fits(without.candidates, fit_cfg.object_slots)
-    assert mask[:2].all()
+    fits, mask, pairs = neighbours.obstacle_fits(without.candidates, [tall, low], fit_cfg)
+    assert mask[:2].all() and pairs[0, 1] and pairs[1, 0]
     removed = 0
     for o, (kept, everything) in enumerate(zip(with_fits.candidates, without.candidates)):
         hits = neighbours.fit_hits(everything.poses.astype(np.float32), everything.widths.astype(np.float32),
-                                   np.full(len(everything), o, np.int32), fits, mask, SPEC, fit_cfg, 0.05, (64, 512))
+                                   np.full(len(everything), o, np.int32), fits, mask, SPEC, fit_cfg, 0.05, (64, 512), pairs)
         np.testing.assert_array_equal(kept.poses, everything.poses[~hits])
         assert kept.counts["collision_fit"] == hits.sum() and "collision_fit" not in everything.counts
         removed += hits.sum()

@@ -357,7 +357,7 @@ def _scene_collisions(poses, widths, scene_points, scene_mask, spec: GripperSpec
 
 def fit_collisions(poses, widths, owner, fits: Superquadric, fit_mask, spec: GripperSpec = GripperSpec(),
                    margin: float = 0.002, sweep: float = 0.05, step: float = 0.006, nearest: int = 4,
-                   chunk: int | None = 64) -> jax.Array:
+                   chunk: int | None = 64, pair_mask=None) -> jax.Array:
     """Whether the hand meets another object's fitted superquadric: the neighbours' hidden sides.
 
     Filter (iv) sees a neighbour's observed points and, with `shadow_depth`, the space they hide along
@@ -367,7 +367,9 @@ def fit_collisions(poses, widths, owner, fits: Superquadric, fit_mask, spec: Gri
 
     poses [K, 4, 4], widths [K]; owner int [K]: the object each candidate grasps (its own fit is not an
     obstacle; -1: none); fits: Superquadric with leading axis [O] (object o's fit at row o); fit_mask
-    bool [O] (False: no fit, padding). The hand (fingers and palm, open to the width, swept back by
+    bool [O] (False: no fit, padding); pair_mask bool [O, O] or None: pair_mask[t, o] False leaves fit o
+    out for the candidates of object t (`neighbours.fit_obstacles`: a fit that holds t's own observed
+    points is wrong where t's grasps go). The hand (fingers and palm, open to the width, swept back by
     `sweep` along the approach: `gripper.hand_samples`, grid spacing `step`) meets a fit when one of
     its sample points lies inside the fit with every semi-axis grown by `margin` metres. Each hand is
     tested against the `nearest` fits whose bounding spheres come closest to its own (a fit farther
@@ -375,6 +377,7 @@ def fit_collisions(poses, widths, owner, fits: Superquadric, fit_mask, spec: Gri
     exact whenever nearest >= O) -> bool [K]. In chunks of `chunk` candidates ([chunk, nearest, P]).
     """
     fits, fit_mask = jax.tree.map(jnp.asarray, fits), jnp.asarray(fit_mask, bool)
+    pair_mask = None if pair_mask is None else jnp.asarray(pair_mask, bool)
     o = fit_mask.shape[0]
     t = min(nearest, o)
     grown = fits.scale + margin
@@ -389,6 +392,8 @@ def fit_collisions(poses, widths, owner, fits: Superquadric, fit_mask, spec: Gri
         hand_centre = p[:, :3, :3] @ centre + p[:, :3, 3]  # [k, 3]
         gap = jnp.linalg.norm(hand_centre[:, None] - fits.translation[None], axis=-1) - fit_radius[None] - radius
         other = fit_mask[None, :] & (jnp.arange(o)[None, :] != own[:, None]) & (gap <= 0.0)  # [k, O]
+        if pair_mask is not None:
+            other &= jnp.where((own >= 0)[:, None], pair_mask[jnp.maximum(own, 0)], True)
         _, pick = jax.lax.top_k(jnp.where(other, -gap, -jnp.inf), t)  # [k, t]
         near = jnp.take_along_axis(other, pick, 1)
         rot_o, t_o = fits.rotation[pick], fits.translation[pick]  # [k, t, 3, 3], [k, t, 3]
