@@ -17,12 +17,9 @@ failures against successes (docs/benchmark.md, "Neighbours' hidden sides").
 
 from __future__ import annotations
 
-import argparse
 import collections
-import json
 import os
 import sys
-from pathlib import Path
 
 import jax.numpy as jnp
 import numpy as np
@@ -90,21 +87,13 @@ def analyse(log: dict, objects, margins, every: int, config: declutter.Declutter
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("results", type=Path, help="a `sgjax declutter --out` folder")
-    parser.add_argument("--method", required=True)
-    parser.add_argument("--setting", required=True)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--scenes", default="0-29", help="indices: 0-29, 3, 0,4,7")
+    from benchmarks.replay_failures import log_arguments, read_logs
+
+    parser = log_arguments(__doc__)
     parser.add_argument("--every", type=int, default=3, help="test every n-th attempt that did not collide")
     parser.add_argument("--margins", type=float, nargs="+", default=[0.0, 0.002, 0.005])
     args = parser.parse_args()
-    from benchmarks.replay_failures import scene_range
-
-    folder = args.results / "logs" / args.method / args.setting / f"seed{args.seed}"
-    logs = [json.loads(p.read_text()) for p in (folder / f"scene_{i:03d}.json" for i in scene_range(args.scenes)) if p.exists()]
-    if not logs:
-        raise SystemExit(f"no scene logs under {folder} for scenes {args.scenes}")
+    logs = read_logs(args)
     config, objects, rows = declutter.DeclutterConfig(), {}, []
     for log in logs:
         name = log["object_set"]["name"]

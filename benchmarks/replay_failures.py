@@ -108,21 +108,34 @@ def print_tables(attempts: list[ReplayedAttempt], other_name: str) -> None:
     print(f"success: ours {ok[0]} / {len(reproduced)}, {other_name} {ok[1]} / {len(reproduced)}")
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def log_arguments(description: str) -> argparse.ArgumentParser:
+    """The arguments that name a benchmark run's scene logs (RESULTS_DIR, --method, --setting, --seed,
+    --scenes): shared by the scripts that read them back (`read_logs`)."""
+    parser = argparse.ArgumentParser(description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("results", type=Path, help="a `sgjax declutter --out` folder")
     parser.add_argument("--method", required=True)
     parser.add_argument("--setting", required=True)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--scenes", default="0-29", help="indices: 0-29, 3, 0,4,7")
-    parser.add_argument("--other", choices=sorted(OTHERS), default="panda")
-    parser.add_argument("--out", type=Path, default=Path("replay_out"))
-    args = parser.parse_args()
+    return parser
+
+
+def read_logs(args: argparse.Namespace) -> list[dict]:
+    """The scene logs `log_arguments` names (those that exist); SystemExit when there are none."""
     folder = args.results / "logs" / args.method / args.setting / f"seed{args.seed}"
     paths = [folder / f"scene_{i:03d}.json" for i in scene_range(args.scenes)]
     logs = [json.loads(p.read_text()) for p in paths if p.exists()]
     if not logs:
         raise SystemExit(f"no scene logs under {folder} for scenes {args.scenes}")
+    return logs
+
+
+def main() -> None:
+    parser = log_arguments(__doc__)
+    parser.add_argument("--other", choices=sorted(OTHERS), default="panda")
+    parser.add_argument("--out", type=Path, default=Path("replay_out"))
+    args = parser.parse_args()
+    logs = read_logs(args)
     out = args.out / args.method / args.setting / f"seed{args.seed}"
     out.mkdir(parents=True, exist_ok=True)
     attempts = replay_logs(logs, args.other, out)

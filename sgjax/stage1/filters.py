@@ -368,7 +368,7 @@ def fit_collisions(poses, widths, owner, fits: Superquadric, fit_mask, spec: Gri
     poses [K, 4, 4], widths [K]; owner int [K]: the object each candidate grasps (its own fit is not an
     obstacle; -1: none); fits: Superquadric with leading axis [O] (object o's fit at row o); fit_mask
     bool [O] (False: no fit, padding); pair_mask bool [O, O] or None: pair_mask[t, o] False leaves fit o
-    out for the candidates of object t (`neighbours.fit_obstacles`: a fit that holds t's own observed
+    out for the candidates of object t (`neighbours.obstacle_fits`: a fit that holds t's own observed
     points is wrong where t's grasps go). The hand (fingers and palm, open to the width, swept back by
     `sweep` along the approach: `gripper.hand_samples`, grid spacing `step`) meets a fit when one of
     its sample points lies inside the fit with every semi-axis grown by `margin` metres. Each hand is
