@@ -327,13 +327,10 @@ class GPDStage2Method(_CandidateMethod):
         if cfg.use_refinement and cfg.refine_rescore and choice["kind"] != planner.KIND_EVALUATED:
             # As the planner: the refine head's best proposals judged at their refined pose (`rescored_refinements`).
             def judge(index, variant):
-                slots = len(cands.widths)  # the one shape this method scores: no new compile
                 n = len(index)
-                pad_index, pad_variant = np.zeros(slots, np.int64), np.zeros(slots, np.int64)
-                pad_index[:n], pad_variant[:n] = index, variant
-                refined = np.asarray(gripper.refined_pose(cands.poses[pad_index], pad_variant, spec), np.float32)
-                widths = np.where(np.arange(slots) < n, cands.widths[pad_index], np.nan).astype(np.float32)
-                judged = score_fn(refined, widths)
+                # Padded to the one shape this method scores: no new compile.
+                judged = score_fn(*planner.padded_refinements(cands.poses, cands.widths, index, variant,
+                                                              len(cands.widths), spec))
                 return np.where(np.asarray(judged.valid)[:n], np.asarray(judged.eval_prob)[:n], 0.0)
 
             refine_score = planner.rescored_refinements(refine_prob, valid, cfg.refine_rescore, judge)

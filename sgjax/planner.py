@@ -349,6 +349,17 @@ def refine_proposals(refine_prob, valid, count: int) -> tuple[np.ndarray, np.nda
     return flat // k, flat % k
 
 
+def padded_refinements(poses, widths, index, variant, slots: int, spec: GripperSpec) -> tuple[np.ndarray, np.ndarray]:
+    """The refined poses of proposals (index [n], variant [n]) of candidates poses [M, 4, 4], widths [M],
+    padded to `slots` rows so that the Stage-2 call that judges them has a shape it already compiled
+    (row 0 fills the padding, its width NaN: invalid for E-RNet) -> (poses [slots, 4, 4] f32, widths [slots] f32)."""
+    n = len(index)
+    pad_index, pad_variant = np.zeros(slots, np.int64), np.zeros(slots, np.int64)
+    pad_index[:n], pad_variant[:n] = index, variant
+    refined = np.asarray(gripper.refined_pose(np.asarray(poses)[pad_index], pad_variant, spec), np.float32)
+    return refined, np.where(np.arange(slots) < n, np.asarray(widths)[pad_index], np.nan).astype(np.float32)
+
+
 def rescored_refinements(refine_prob, valid, count: int, judge) -> np.ndarray:
     """The refinements' scores under `PlannerConfig.refine_rescore`: the refine head's best `count`
     proposals each judged at its refined pose, `judge(index [n], variant [n])` -> the evaluation head's
@@ -668,27 +679,29 @@ class Planner:
         """One plan with this Stage 1; fits: whether the neighbours' fits are obstacles (`neighbour_fits`)."""
         compiled = _compile_count()
         candidates, reused = self._stage1(stage1, objects, view, seed, memory)
-        fits = fits and self.config.neighbour_fits is not None
-        if fits:
-            candidates = self._without_fit_collisions(stage1, candidates, objects, seed)
-        plan = self._choose(stage1, scene, objects, skipped, view, seed, start, avoid, candidates, compiled, fits)
+        fitted = None
+        if fits and self.config.neighbour_fits is not None:
+            candidates, fitted = self._without_fit_collisions(stage1, candidates, objects, seed)
+        plan = self._choose(stage1, scene, objects, skipped, view, seed, start, avoid, candidates, compiled, fitted)
         plan.reused = reused
         return plan
 
     def _without_fit_collisions(self, stage1: Stage1, candidates: list[Candidates], objects: list,
-                                seed: int) -> list[Candidates]:
+                                seed: int) -> tuple[list[Candidates], tuple]:
         """Candidates whose hand meets another object's fitted superquadric removed
-        (`sgjax.stage1.neighbours`). Compiled for every Stage-2 batch size at the first plan."""
+        (`sgjax.stage1.neighbours`), and the fits tested (`neighbours.obstacle_fits`: the refined poses
+        are tested against them too). Compiled for every Stage-2 batch size at the first plan."""
         cfg = self.config
         sweep = stage1.config.filter.approach_clearance
         if not self._fits_ready:
             neighbours.warm(candidates, cfg.spec, cfg.neighbour_fits, sweep, cfg.stage2_sizes)
             self._fits_ready = True
-        return neighbours.without_fit_collisions(candidates, [cloud for _, cloud, _ in objects], cfg.spec,
-                                                 cfg.neighbour_fits, sweep, cfg.stage2_sizes, seed)
+        fitted = neighbours.obstacle_fits(candidates, [cloud for _, cloud, _ in objects], cfg.neighbour_fits, seed)
+        return neighbours.without_fit_collisions(candidates, fitted, cfg.spec, cfg.neighbour_fits, sweep,
+                                                 cfg.stage2_sizes), fitted
 
     def _choose(self, stage1: Stage1, scene, objects, skipped, view, seed, start, avoid, candidates, compiled,
-                fits: bool = False) -> Plan:
+                fitted: tuple | None = None) -> Plan:
         """Stage 2 and the decision on Stage 1's candidates (one Candidates per object)."""
         cfg = self.config
         labels = [label for label, _, _ in objects]
@@ -750,7 +763,7 @@ class Planner:
             t2 = time.perf_counter()
             timing.update(stage2_s=t2 - t1, total_s=t2 - start, compiled=_compile_count() != compiled)
         if int(choice["kind"]) == KIND_REFINED:
-            choice, rejected = self._collision_free(stage1, choice, scores, objects, candidates, view, seed, fits)
+            choice, rejected = self._collision_free(stage1, choice, scores, objects, candidates, view, seed, fitted)
             t2 = time.perf_counter()
             timing.update(stage2_s=t2 - t1, total_s=t2 - start, compiled=_compile_count() != compiled)
         kind = int(choice["kind"])
@@ -789,12 +802,8 @@ class Planner:
 
         def judge(index, variant):
             n = len(index)
-            slots = cfg.stage2_slots(n)
-            # Fixed shapes (a Stage-2 batch size), so that no plan compiles: row 0 fills the padding slots.
-            pad_index, pad_variant = np.zeros(slots, np.int64), np.zeros(slots, np.int64)
-            pad_index[:n], pad_variant[:n] = index, variant
-            refined = np.asarray(gripper.refined_pose(poses[pad_index], pad_variant, cfg.spec), np.float32)
-            refined_widths = np.where(np.arange(slots) < n, widths[pad_index], np.nan).astype(np.float32)
+            slots = cfg.stage2_slots(n)  # a Stage-2 batch size, so that no plan compiles
+            refined, refined_widths = padded_refinements(poses, widths, index, variant, slots, cfg.spec)
             out, _ = self._score(scene_pad, scene_mask, refined, refined_widths, np.arange(slots) < n, seed, thresholds)
             return np.where(out["valid"][:n], out["eval_prob"][:n], 0.0)
 
@@ -815,13 +824,13 @@ class Planner:
         return {"index": index, "kind": kind, "variant": variant, "score": best, "pose": None}
 
     def _collision_free(self, stage1: Stage1, choice: dict, scores: dict, objects: list, candidates: list, view,
-                        seed: int, fits: bool = False):
+                        seed: int, fitted: tuple | None = None):
         """The policy's choice with every refined pose it would execute checked by Stage 1's obstacle and
-        table tests first ((iv), (v) of `Stage1.collisions`, and with `fits` the other objects' fitted
-        superquadrics, `neighbour_fits`): Stage 1 checked each candidate's initial pose, but a refinement deepens and
-        turns the hand, and E-RNet's crop does not show all the obstacles or the table. A refined pose
-        that fails is left out and the policy decides again (another refinement, or none)
-        (`collision_free`). -> (choice, refined poses left out)."""
+        table tests first ((iv), (v) of `Stage1.collisions`, and the other objects' fitted superquadrics
+        `fitted` when given, `neighbours.obstacle_fits`): Stage 1 checked each candidate's initial pose,
+        but a refinement deepens and turns the hand, and E-RNet's crop does not show all the obstacles or
+        the table. A refined pose that fails is left out and the policy decides again (another
+        refinement, or none) (`collision_free`). -> (choice, refined poses left out)."""
         cfg = self.config
 
         def collides(index):
@@ -837,10 +846,9 @@ class Planner:
             # The obstacles and the table, not the target: the target lies in E-RNet's crop, and its refine
             # head was trained on how these very refinements fared against it in simulation.
             hits = found["collision_scene"] | found["below_support"]
-            if fits:  # and the other objects' hidden sides, as the candidates were
-                fitted, mask, pairs = neighbours.obstacle_fits(candidates, [c for _, c, _ in objects], cfg.neighbour_fits,
-                                                               seed)
-                hits = hits | neighbours.fit_hits(found["poses"], widths, np.full(len(widths), o, np.int32), fitted, mask,
+            if fitted is not None:  # and the other objects' hidden sides, as the candidates were
+                fits, mask, pairs = fitted
+                hits = hits | neighbours.fit_hits(found["poses"], widths, np.full(len(widths), o, np.int32), fits, mask,
                                                   cfg.spec, cfg.neighbour_fits, stage1.config.filter.approach_clearance,
                                                   cfg.stage2_sizes, pairs)
             moved = np.any(found["poses"] != variants, axis=(1, 2))

@@ -105,7 +105,7 @@ def test_without_fit_collisions_removes_counts_and_explains():
              candidates(poses[:0], widths[:0], fit_result(sqs[2], valid=False))]
     config = NeighbourFitConfig(margin=0.002, step=STEP, nearest=4, object_slots=8)
     far = [np.full((10, 3), 5.0)] * 3  # observed points far from every fit: no fit is discounted
-    out = without_fit_collisions(given, far, SPEC, config, SWEEP, (64, 128))
+    out = without_fit_collisions(given, obstacle_fits(given, far, config), SPEC, config, SWEEP, (64, 128))
     stacked, fit_mask = padded_fits(given, 8)
     assert fit_mask.tolist() == [True, True] + [False] * 6
     expected = brute_force(stacked, fit_mask, poses, widths, np.r_[np.zeros(40, np.int32), np.ones(24, np.int32)], 0.002)
@@ -118,15 +118,14 @@ def test_without_fit_collisions_removes_counts_and_explains():
     # Every grasp of object 0 inside object 1's fit: none left, and why.
     inside = np.tile(np.eye(4, dtype=np.float32), (5, 1, 1))
     inside[:, :3, 3] = np.asarray(sqs[1].translation)
-    blocked = without_fit_collisions([candidates(inside, np.full(5, 0.03, np.float32), fit_result(sqs[0])), given[1]],
-                                     far[:2], SPEC, config, SWEEP, (64,))
+    pair = [candidates(inside, np.full(5, 0.03, np.float32), fit_result(sqs[0])), given[1]]
+    blocked = without_fit_collisions(pair, obstacle_fits(pair, far[:2], config), SPEC, config, SWEEP, (64,))
     assert len(blocked[0]) == 0 and "all 5 candidates" in blocked[0].reason and "fitted superquadric" in blocked[0].reason
     # ... unless object 1's fit holds object 0's own observed points (more than max_overlap of them): then
     # that fit is wrong where object 0's grasps go, and it is no obstacle for them (it still is for others).
     centre = np.asarray(sqs[1].translation)
     own = np.r_[np.tile(centre, (3, 1)), np.full((97, 3), 5.0)]  # 3 % of object 0's points inside fit 1
-    kept = without_fit_collisions([candidates(inside, np.full(5, 0.03, np.float32), fit_result(sqs[0])), given[1]],
-                                  [own, far[1]], SPEC, config, SWEEP, (64,))
+    kept = without_fit_collisions(pair, obstacle_fits(pair, [own, far[1]], config), SPEC, config, SWEEP, (64,))
     assert len(kept[0]) == 5 and kept[0].counts["collision_fit"] == 0
     _, _, pairs = obstacle_fits(given[:2], [own, far[1]], config)
     assert pairs[:2, :2].tolist() == [[False, False], [True, False]]

@@ -28,7 +28,7 @@ from sgjax.geometry import pointcloud
 from sgjax.geometry.gripper import GripperSpec
 from sgjax.geometry.superquadric import Superquadric, log_implicit_local
 from sgjax.stage1.filters import fit_collisions
-from sgjax.stage1.pipeline import Candidates
+from sgjax.stage1.pipeline import ROW_FIELDS, Candidates
 
 
 @dataclasses.dataclass(frozen=True)
@@ -143,16 +143,16 @@ def warm(candidates: list[Candidates], spec: GripperSpec, config: NeighbourFitCo
                  np.full(size, -1, np.int32), fits, mask, spec, config, sweep, (size,), pairs)
 
 
-def without_fit_collisions(candidates: list[Candidates], clouds: list, spec: GripperSpec, config: NeighbourFitConfig,
-                           sweep: float, sizes: tuple[int, ...], seed: int = 0) -> list[Candidates]:
-    """Each object's candidates without those whose hand meets another object's fit (`obstacle_fits`;
-    clouds: each object's observed points [N_i, 3]): one Candidates per object, with counts["collision_fit"]
-    (how many were removed) and, when none is left, the reason. The given Candidates are not changed (a
-    `Stage1Memory` may hold them)."""
+def without_fit_collisions(candidates: list[Candidates], obstacles: tuple, spec: GripperSpec, config: NeighbourFitConfig,
+                           sweep: float, sizes: tuple[int, ...]) -> list[Candidates]:
+    """Each object's candidates without those whose hand meets another object's fit (obstacles: these
+    candidates' `obstacle_fits`): one Candidates per object, with counts["collision_fit"] (how many were
+    removed) and, when none is left, the reason. The given Candidates are not changed (a `Stage1Memory`
+    may hold them)."""
     counts = [len(c) for c in candidates]
     if sum(counts) == 0 or len(candidates) < 2:
         return [dataclasses.replace(c, counts={**c.counts, "collision_fit": 0}) for c in candidates]
-    fits, mask, pairs = obstacle_fits(candidates, clouds, config, seed)
+    fits, mask, pairs = obstacles
     poses = np.concatenate([np.asarray(c.poses, np.float32).reshape(-1, 4, 4) for c in candidates])
     widths = np.concatenate([np.asarray(c.widths, np.float32) for c in candidates])
     owner = np.repeat(np.arange(len(candidates), dtype=np.int32), counts)
@@ -164,10 +164,7 @@ def _kept(c: Candidates, keep: np.ndarray) -> Candidates:
     removed = int(len(keep) - keep.sum())
     counts = {**c.counts, "collision_fit": removed, "kept": int(keep.sum())}
     rows = np.flatnonzero(keep)
-    out = dataclasses.replace(
-        c, poses=c.poses[rows], widths=c.widths[rows], primitive_id=c.primitive_id[rows],
-        template_id=c.template_id[rows], match_rank=c.match_rank[rows], match_score=c.match_score[rows],
-        points_between=c.points_between[rows], counts=counts)
+    out = dataclasses.replace(c, counts=counts, **{name: getattr(c, name)[rows] for name in ROW_FIELDS})
     if removed and not len(rows):
         out.reason = f"all {removed} candidates left by Stage 1 meet a neighbour's fitted superquadric"
     return out

@@ -134,6 +134,10 @@ class Candidates:
         return json.dumps(self.to_dict(top))
 
 
+# The Candidates fields with one row per candidate (what selecting candidates selects).
+ROW_FIELDS = ("poses", "widths", "primitive_id", "template_id", "match_rank", "match_score", "points_between")
+
+
 def _empty(counts: dict, reason: str, fit: FitResult | None, before_scene: dict | None = None) -> Candidates:
     z = np.zeros(0)
     return Candidates(np.zeros((0, 4, 4)), z, z.astype(int), z.astype(int), z.astype(int), z, z.astype(int), fit, counts, reason,
@@ -141,19 +145,11 @@ def _empty(counts: dict, reason: str, fit: FitResult | None, before_scene: dict 
 
 
 def _selected(arrays: dict, rows: np.ndarray, fit: FitResult, counts: dict, before_scene: dict | None) -> Candidates:
-    """Candidates from named arrays (the Candidates fields, float64 poses / widths / scores) at rows."""
-    return Candidates(
-        poses=arrays["poses"][rows].astype(np.float64),
-        widths=arrays["widths"][rows].astype(np.float64),
-        primitive_id=arrays["primitive_id"][rows],
-        template_id=arrays["template_id"][rows],
-        match_rank=arrays["match_rank"][rows],
-        match_score=arrays["match_score"][rows].astype(np.float64),
-        points_between=arrays["points_between"][rows],
-        superquadric=fit,
-        counts=counts,
-        before_scene=before_scene,
-    )
+    """Candidates from named arrays (the `ROW_FIELDS`; float64 poses / widths / scores) at rows."""
+    taken = {name: arrays[name][rows] for name in ROW_FIELDS}
+    for name in ("poses", "widths", "match_score"):
+        taken[name] = taken[name].astype(np.float64)
+    return Candidates(**taken, superquadric=fit, counts=counts, before_scene=before_scene)
 
 
 def _reason(counts: dict, cfg: Stage1Config) -> str:
