@@ -53,11 +53,12 @@ VARIANTS = {
     # Not Stage 1: refinements scored by the refine head alone, the paper's rule (`PlannerConfig.refine_rescore`).
     "refine-head": {"planner": {"refine_rescore": 0}},
     # Not Stage 1's: the planner's test of the hand against the neighbours' fitted superquadrics
-    # (`PlannerConfig.neighbour_fits`): off (the planner before 2026-12-03 evening), with a 5 mm margin, or
-    # in the second plan too.
+    # (`PlannerConfig.neighbour_fits`): off (the planner before 2026-12-03 evening), with a 5 mm margin,
+    # in the second plan too, or with the closing region between the fingers tested too.
     "no-neighbour-fits": {"planner": {"neighbour_fits": None}},
     "neighbour-fits-5mm": {"planner": {"neighbour_fits": NeighbourFitConfig(margin=0.005)}},
     "neighbour-fits-both": {"planner": {"neighbour_fits": NeighbourFitConfig(in_fallback=True)}},  # in the second plan too
+    "neighbour-fits-closing": {"planner": {"neighbour_fits": NeighbourFitConfig(closing=True)}},
 }
 
 

@@ -194,6 +194,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
             lr_decay_epochs=args.lr_decay_epochs,
             devices=args.devices,
             rank_weight=args.rank_weight,
+            swap_fingers=args.swap_fingers,
             model={"paper": network.paper, "light": network.light, "tiny": network.tiny}[args.model](**hand),
         )
         result = run(args.data, args.out, config, progress=not args.quiet, init=args.init)  # one directory or several
@@ -607,6 +608,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--rank-weight", type=float, default=0.0, metavar="W",
         help="add W x a within-scene ranking loss (each success should outscore each failure of its scene; "
         "batches are then drawn scene by scene); 0: the paper's loss (default). E-RNet only",
+    )
+    p.add_argument(
+        "--swap-fingers", action="store_true",
+        help="show each training sample as its twin with the fingers swapped (the grasp frame turned 180 degrees "
+        "about the approach axis: the same physical grasp) half of the time",
     )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--synthetic", type=int, default=0, metavar="N", help="first write N synthetic samples to --data")

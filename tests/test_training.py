@@ -187,6 +187,43 @@ def test_rank_weight_is_part_of_a_run(samples, tmp_path):
         train_pointnetgpd.train(samples, tmp_path / "g", gpd, progress=False)
 
 
+def test_swap_fingers_augments_training_batches_only(samples, tmp_path):
+    """swap_fingers: about half of a training batch's regions become their finger-swapped twins (x, y
+    negated), the rest and every other field unchanged; the evaluation step never swaps (the same
+    held-out scores with and without it); a run records it in its fingerprint, runs without it keep
+    theirs; the PointNetGPD baseline trains with it too."""
+    batch = dataset.make_batch(samples, np.arange(64), np.ones(64, np.float32))
+    out = trainer.swapped_fingers(batch, jax.random.key(0))
+    region, swapped = np.asarray(batch.region), np.asarray(out.region)
+    flipped = np.all(np.isclose(swapped, region * np.array([-1, -1, 1], np.float32)), axis=(1, 2))
+    kept = np.all(swapped == region, axis=(1, 2))
+    assert np.all(flipped ^ kept) and 16 <= flipped.sum() <= 48
+    for name in ("region_mask", "width", "label", "refine_labels", "weight", "group"):
+        np.testing.assert_array_equal(getattr(out, name), getattr(batch, name))
+
+    config = dataclasses.replace(CONFIG, epochs=1, swap_fingers=True)
+    model = ernet.ERNet(TINY, rngs=nnx.Rngs(0))
+    graphdef, params = nnx.split(model)
+    # Steps of their own (another threshold): CONFIG's cached ones must compile once, for its own batches.
+    other = dict(threshold=0.6)
+    _, _, eval_plain = trainer.make_steps(graphdef, dataclasses.replace(CONFIG, **other))
+    _, _, eval_swap = trainer.make_steps(graphdef, dataclasses.replace(config, **other))
+    eval_batch = jax.device_put(batch)
+    a, b = eval_plain(params, eval_batch, jax.random.key(1)), eval_swap(params, eval_batch, jax.random.key(1))
+    np.testing.assert_array_equal(a["per_sample"]["prob"], b["per_sample"]["prob"])
+    assert "swap_fingers" not in CONFIG.resume_key() and config.resume_key()["swap_fingers"] is True
+    result = trainer.train(samples, tmp_path / "r", config, progress=False)
+    assert np.isfinite(result.history[0]["train"]["loss"])
+    with pytest.raises(ValueError, match="other settings"):
+        trainer.train(samples, tmp_path / "r", dataclasses.replace(config, epochs=2, swap_fingers=False), progress=False)
+    from sgjax.stage2.pointnetgpd import PointNetGPDConfig
+    from train import train_pointnetgpd
+
+    gpd = train_pointnetgpd.train(samples, tmp_path / "g", dataclasses.replace(config, model=PointNetGPDConfig.tiny()),
+                                  progress=False)
+    assert np.isfinite(gpd.history[0]["train"]["loss"])
+
+
 @pytest.fixture(scope="module")
 def trained(samples, tmp_path_factory):
     run = tmp_path_factory.mktemp("run_a")
@@ -312,6 +349,8 @@ def test_cli_train_synthetic_then_resume_and_bad_data(tmp_path, capsys):
     assert cli.main([*args, "--epochs", "2", "--held-out", "0"]) == 0  # continues after epoch 1
     assert [r["epoch"] for r in json.loads((out / "metrics.json").read_text())["history"]] == [1, 2]
     assert cli.main([*args, "--epochs", "2", "--held-out", "0.5"]) == 2  # other settings: refused
+    assert "other settings" in capsys.readouterr().err
+    assert cli.main([*args, "--epochs", "3", "--held-out", "0", "--swap-fingers"]) == 2  # so is an augmentation
     assert "other settings" in capsys.readouterr().err
     (tmp_path / "empty").mkdir()
     assert cli.main(["train", "--data", str(tmp_path / "empty"), "--out", str(out), "--quiet"]) == 2

@@ -38,6 +38,7 @@ from train.trainer import (
     classification_stats,
     initial_model,
     jit_steps,
+    swapped_fingers,
     make_optimizer,
     run_training,
     steps_builder,
@@ -75,7 +76,8 @@ def make_steps(graphdef: nnx.GraphDef, config: TrainConfig):
         logits, weight = aux
         return {"prob": probability(logits), "weight": weight}
 
-    return jit_steps(make_optimizer(config), forward, stats, model_config.noise_std, per_sample)
+    return jit_steps(make_optimizer(config), forward, stats, model_config.noise_std, per_sample,
+                     swapped_fingers if config.swap_fingers else None)
 
 
 def train(

@@ -54,7 +54,7 @@ from sgjax.stage2.ernet import (
     prepare_inputs,
 )
 from sgjax.utils.files import atomic_write, atomic_write_text
-from sgjax.geometry.gripper import GripperSpec
+from sgjax.geometry.gripper import GripperSpec, swap_fingers_local
 from train import dataset
 
 # ---------------------------------------------------------------------------------------------
@@ -78,6 +78,10 @@ class TrainConfig:
         loss (`sgjax.stage2.ernet.ranking_loss`: every success should outscore every failure of its
         scene); > 0 also draws the batches scene by scene (`dataset.scene_batch_indices`) so that a
         batch holds pairs to rank. 0 (default, the paper): the paper's loss and shuffled batches.
+    swap_fingers: each training sample is seen, with probability 1/2, as its twin with the fingers
+        swapped (`gripper.swap_fingers_local`: the grasp frame turned 180 degrees about the approach
+        axis), the same physical grasp with the same labels: an augmentation by the gripper's symmetry,
+        which the paper's input frame does not give the network. False (default): as labelled.
     devices: data-parallel width: each batch is split over the first `devices` JAX devices (a mesh
         axis "data"), parameters and optimiser state are replicated; `batch_size` must be divisible
         by it. 1 (default): one device, as before. It changes where the step runs, not what it
@@ -96,6 +100,7 @@ class TrainConfig:
     lr_decay_epochs: int = 0
     devices: int = 1
     rank_weight: float = 0.0
+    swap_fingers: bool = False
     model: ERNetConfig = DEFAULT_MODEL
     spec: GripperSpec = DEFAULT_SPEC
 
@@ -137,6 +142,8 @@ class TrainConfig:
             d.pop(name)
         if not self.rank_weight:  # runs written before the setting existed keep their fingerprint
             d.pop("rank_weight")
+        if not self.swap_fingers:  # likewise
+            d.pop("swap_fingers")
         return json.loads(json.dumps(d))  # tuples -> lists, as stored in JSON
 
 
@@ -193,18 +200,32 @@ def step_config(config: TrainConfig) -> TrainConfig:
     return dataclasses.replace(config, epochs=1, seed=0, held_out_fraction=0.0, prefetch=1, lr_decay_epochs=0, devices=1)
 
 
-def jit_steps(tx: optax.GradientTransformation, forward: Callable, stats: Callable, noise_std: float, per_sample: Callable | None = None):
+AUGMENT_STREAM = 0x5A17  # fold_in(step key, this): the augmentation's randomness, apart from the input noise's
+
+
+def swapped_fingers(batch: dataset.Batch, key) -> dataset.Batch:
+    """`TrainConfig.swap_fingers`: each sample's region [B, P, 3] replaced by its finger-swapped twin's
+    (`gripper.swap_fingers_local`) with probability 1/2 (labels unchanged: the same physical grasp)."""
+    swap = jax.random.bernoulli(key, 0.5, batch.label.shape)
+    return dataclasses.replace(batch, region=jnp.where(swap[:, None, None], swap_fingers_local(batch.region), batch.region))
+
+
+def jit_steps(tx: optax.GradientTransformation, forward: Callable, stats: Callable, noise_std: float,
+              per_sample: Callable | None = None, augment: Callable | None = None):
     """-> (tx, train_step, eval_step) for any network of this trainer.
 
     forward(params, batch, key, noise_std) -> (loss, aux); stats(batch, loss, aux) -> dict of sums;
     per_sample(aux) -> {"prob": [B], "weight": [B], optionally "refine_prob": [B, K]} (the judgement
-    metrics' inputs, `train.judgement`).
+    metrics' inputs, `train.judgement`); augment(batch, key) -> batch, applied to training batches only
+    (None: none).
     train_step(params, opt_state, batch, key, lr_scale) -> (params, opt_state, stats) (params and
     state donated; lr_scale [] multiplies the step, the schedule's factor, traced so it never recompiles);
     eval_step(params, batch, key) -> stats, without input noise, with stats["per_sample"] when given.
     """
 
     def train_step(params, opt_state, batch, key, lr_scale):
+        if augment is not None:
+            batch = augment(batch, jax.random.fold_in(key, AUGMENT_STREAM))
         (loss, aux), grads = jax.value_and_grad(forward, has_aux=True)(params, batch, key, noise_std)
         updates, opt_state = tx.update(grads, opt_state, params)
         # Scaling the final step is scaling the learning rate (Adam's moments do not see it), and
@@ -264,7 +285,8 @@ def make_steps(graphdef: nnx.GraphDef, config: TrainConfig):
         output, _, weight = aux
         return {"prob": output.eval_prob, "refine_prob": output.refine_prob, "weight": weight}
 
-    return jit_steps(make_optimizer(config), forward, stats, model_config.noise_std, per_sample)
+    return jit_steps(make_optimizer(config), forward, stats, model_config.noise_std, per_sample,
+                     swapped_fingers if config.swap_fingers else None)
 
 
 def summarise(stats: Mapping[str, Any]) -> dict[str, Any]:

@@ -358,22 +358,40 @@ def hand_boxes(spec: GripperSpec, width, margin: float = 0.0, sweep: float = 0.0
     return right, left, palm
 
 
-def hand_samples(spec: GripperSpec, width, sweep: float = 0.0, step: float = 0.005) -> jax.Array:
+def hand_samples(spec: GripperSpec, width, sweep: float = 0.0, step: float = 0.005, closing: bool = False) -> jax.Array:
     """Points filling the open hand (`hand_boxes`: both fingers and the palm, swept back by `sweep` along
     -z), gripper frame: width [...] -> [..., P, 3], a grid on each box with spacing <= `step` along
-    every axis, its faces included. P depends on the spec, sweep and step only (the width moves the
-    fingers' grids, it does not resize them), so a batch of widths has one shape."""
+    every axis, its faces included. closing: also the closing region between the fingers (`closing_box`),
+    the space the fingers sweep through as they close: whatever lies there besides the target, a finger
+    meets. P depends on the spec, sweep, step and closing only (the width moves or stretches the grids,
+    it does not resize them), so a batch of widths has one shape."""
     if not step > 0.0:
         raise ValueError(f"step must be > 0 metres, got {step}")
     w = jnp.asarray(width, jnp.float32)[..., None]  # [..., 1]
+    # (box at this width, box that sets the grid's counts): a finger keeps its size at any width; the
+    # closing region is as wide as the opening, so its grid is sized for the widest one.
+    boxes = list(zip(hand_boxes(spec, w, 0.0, sweep), hand_boxes(spec, 0.0, 0.0, sweep)))
+    if closing:
+        boxes.append((closing_box(spec, w), closing_box(spec, spec.max_opening)))
     parts = []
-    for (lo, hi), (lo0, hi0) in zip(hand_boxes(spec, w, 0.0, sweep), hand_boxes(spec, 0.0, 0.0, sweep)):
+    for (lo, hi), (lo0, hi0) in boxes:
         counts = [max(2, int(np.ceil((b - a) / step - 1e-6)) + 1) for a, b in zip(lo0, hi0)]
         unit = np.stack(np.meshgrid(*(np.linspace(0.0, 1.0, c) for c in counts), indexing="ij"), -1).reshape(-1, 3)
         corner = lambda v: jnp.stack(jnp.broadcast_arrays(*(jnp.asarray(c, jnp.float32) for c in v), w), -1)[..., :3]
         lo_, hi_ = corner(lo), corner(hi)  # [..., 1, 3]
         parts.append(lo_ + jnp.asarray(unit, jnp.float32) * (hi_ - lo_))
     return jnp.concatenate(parts, -2)
+
+
+def swap_fingers_local(local: jax.Array) -> jax.Array:
+    """Gripper-frame points [..., 3] of a grasp as its twin with the fingers swapped sees them: the pose
+    turned 180 degrees about the approach axis z, i.e. (x, y, z) -> (-x, -y, z). A parallel-jaw grasp
+    and its twin are one physical grasp (the same closing line, width, depth and approach; the
+    refinement variants, turns about z and a deepening along it, map to the same variants), so a
+    scorer should judge both alike; the hand's regions (`hand_boxes`, `closing_box`, the enlarged
+    region) are symmetric under it."""
+    local = jnp.asarray(local)
+    return local * jnp.asarray([-1.0, -1.0, 1.0], local.dtype)
 
 
 def in_box(x: jax.Array, y: jax.Array, z: jax.Array, box: AxisBox) -> jax.Array:

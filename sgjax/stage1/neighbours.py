@@ -53,6 +53,9 @@ class NeighbourFitConfig:
     # points tested (a seeded subsample).
     max_overlap: float = 0.02
     overlap_points: int = 256
+    # Also the closing region between the fingers: a neighbour there (hidden under or behind the target,
+    # where filter (iv) sees no point of it) is what a closing finger meets. False: fingers and palm only.
+    closing: bool = False
 
     def __post_init__(self):
         if not (np.isfinite(self.margin) and self.margin >= 0.0):
@@ -94,25 +97,31 @@ def _overlap(points, point_mask, fits: Superquadric, margin: float):
     return jnp.sum(inside & point_mask[:, None], -1) / jnp.maximum(jnp.sum(point_mask, -1), 1)[:, None]
 
 
-def obstacle_fits(candidates: list[Candidates], clouds: list, config: NeighbourFitConfig, seed: int = 0):
-    """The fits the test uses: (fits [O], mask [O], pairs bool [O, O]) with `padded_fits`' rows and
-    pairs[t, o] False where fit o holds more than `max_overlap` of object t's observed points clouds[t]
-    (each [N_t, 3], a seeded subsample of `overlap_points` tested) or o is t itself."""
-    fits, mask = padded_fits(candidates, config.object_slots)
+def fit_pairs(fits: Superquadric, mask, clouds: list, config: NeighbourFitConfig, seed: int = 0) -> np.ndarray:
+    """Which fit is an obstacle for which object: fits [O] with mask [O] (`padded_fits`), clouds the
+    objects' observed points (clouds[t] [N_t, 3], object t's fit at row t; len <= O) -> bool [O, O],
+    [t, o] False where fit o holds more than `max_overlap` of object t's points (a seeded subsample of
+    `overlap_points` tested, each fit grown by the margin), o is t itself, or o has no fit."""
     o = len(mask)
     points, point_mask = pointcloud.pad_clouds([np.asarray(c, np.float32).reshape(-1, 3) for c in clouds]
                                                + [np.zeros((1, 3), np.float32)] * (o - len(clouds)),
                                                config.overlap_points, seed, n_points=config.overlap_points)
     point_mask[len(clouds):] = False
     overlap = np.asarray(_overlap(points, point_mask, fits, float(config.margin)))
-    pairs = (overlap <= config.max_overlap) & mask[None, :] & ~np.eye(o, dtype=bool)
-    return fits, mask, pairs
+    return (overlap <= config.max_overlap) & np.asarray(mask, bool)[None, :] & ~np.eye(o, dtype=bool)
+
+
+def obstacle_fits(candidates: list[Candidates], clouds: list, config: NeighbourFitConfig, seed: int = 0):
+    """The fits the test uses: (fits [O], mask [O], pairs bool [O, O]) with `padded_fits`' rows and
+    `fit_pairs` for the objects' observed points clouds[t] [N_t, 3]."""
+    fits, mask = padded_fits(candidates, config.object_slots)
+    return fits, mask, fit_pairs(fits, mask, clouds, config, seed)
 
 
 @functools.partial(jax.jit, static_argnames=("spec", "config", "sweep"))
 def _hits(poses, widths, owner, fits, mask, pairs, spec: GripperSpec, config: NeighbourFitConfig, sweep: float):
     return fit_collisions(poses, widths, owner, fits, mask, spec, config.margin, sweep, config.step, config.nearest,
-                          pair_mask=pairs)
+                          pair_mask=pairs, closing=config.closing)
 
 
 def fit_hits(poses, widths, owner, fits: Superquadric, mask, spec: GripperSpec, config: NeighbourFitConfig,
