@@ -59,6 +59,8 @@ VARIANTS = {
     "neighbour-fits-5mm": {"planner": {"neighbour_fits": NeighbourFitConfig(margin=0.005)}},
     "neighbour-fits-both": {"planner": {"neighbour_fits": NeighbourFitConfig(in_fallback=True)}},  # in the second plan too
     "neighbour-fits-closing": {"planner": {"neighbour_fits": NeighbourFitConfig(closing=True)}},
+    # ... and in the second plan as a preference: the candidates that pass it, else all of them.
+    "neighbour-fits-prefer": {"planner": {"neighbour_fits": NeighbourFitConfig(in_fallback="prefer")}},
 }
 
 

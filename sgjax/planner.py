@@ -675,14 +675,20 @@ class Planner:
         return out, len(kept)
 
     def _run_with(self, stage1: Stage1, scene, objects, skipped, view, seed, start, avoid, memory=None,
-                  fits: bool = True) -> Plan:
-        """One plan with this Stage 1; fits: whether the neighbours' fits are obstacles (`neighbour_fits`)."""
+                  fits: bool | str = True) -> Plan:
+        """One plan with this Stage 1; fits: whether the neighbours' fits are obstacles (`neighbour_fits`):
+        True, False, or "prefer" (the candidates that pass the test first; all of them when those give
+        no grasp, `NeighbourFitConfig.in_fallback`)."""
         compiled = _compile_count()
         candidates, reused = self._stage1(stage1, objects, view, seed, memory)
-        fitted = None
-        if fits and self.config.neighbour_fits is not None:
-            candidates, fitted = self._without_fit_collisions(stage1, candidates, objects, seed)
-        plan = self._choose(stage1, scene, objects, skipped, view, seed, start, avoid, candidates, compiled, fitted)
+        if not fits or self.config.neighbour_fits is None:
+            plan = self._choose(stage1, scene, objects, skipped, view, seed, start, avoid, candidates, compiled)
+        else:
+            clear, fitted = self._without_fit_collisions(stage1, candidates, objects, seed)
+            plan = self._choose(stage1, scene, objects, skipped, view, seed, start, avoid, clear, compiled, fitted)
+            if fits == "prefer" and not plan.ok and sum(map(len, clear)) < sum(map(len, candidates)):
+                # What the test removed may be all there is: plan as without it rather than find nothing.
+                plan = self._choose(stage1, scene, objects, skipped, view, seed, start, avoid, candidates, compiled)
         plan.reused = reused
         return plan
 

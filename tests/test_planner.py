@@ -566,3 +566,47 @@ def test_candidates_meeting_a_neighbours_fit_are_removed(planner):
         assert kept.counts["collision_fit"] == hits.sum() and "collision_fit" not in everything.counts
         removed += hits.sum()
     assert removed > 0 and with_fits.n_candidates == without.n_candidates - removed
+
+
+def test_second_plan_prefers_candidates_clear_of_the_neighbours_fits(small_db):
+    """`NeighbourFitConfig(in_fallback="prefer")`: the second plan (the first finds nothing here) plans with
+    the candidates whose hand meets no other object's fit, exactly those, when they give a grasp; when the
+    test removes them all (a fit grown by 30 cm), it plans with every candidate, where `in_fallback=True`
+    finds nothing."""
+    from sgjax.stage1 import neighbours
+    from sgjax.stage1.filters import FilterConfig
+    from sgjax.stage1.neighbours import NeighbourFitConfig
+
+    rng = np.random.default_rng(0)
+    xs, ys = np.meshgrid(np.linspace(-0.25, 0.25, 40), np.linspace(-0.25, 0.25, 40))
+    table = np.c_[xs.ravel(), ys.ravel(), rng.normal(0, 0.001, xs.size)]
+    tall, low = box((0.0, 0.0), (0.02, 0.025, 0.05), 0, seed=0), box((-0.06, 0.0), (0.02, 0.03, 0.02), 0, seed=1)
+    points = np.concatenate([table, tall, low])
+    labels = np.concatenate([np.full(len(table), -1), np.zeros(len(tall), int), np.ones(len(low), int)])
+    strong = rigged([0.0, 5.0], [5.0, 5.0, 5.0])
+    starved = dataclasses.replace(CONFIG.stage1, filter=FilterConfig(min_points=5000))  # the first plan finds nothing
+    second = dataclasses.replace(CONFIG, stage1=starved, fallback_filter=FilterConfig())
+
+    def plan(fit_config):
+        return Planner(strong, small_db, dataclasses.replace(second, neighbour_fits=fit_config)).plan(points, labels, viewpoint=CAMERA)
+
+    prefer, everything = plan(NeighbourFitConfig(in_fallback="prefer")), plan(None)
+    assert prefer.ok and prefer.fallback and everything.ok
+    fit_cfg = NeighbourFitConfig()
+    fits, mask, pairs = neighbours.obstacle_fits(everything.candidates, [tall, low], fit_cfg)
+    removed = 0
+    for o, (kept, whole) in enumerate(zip(prefer.candidates, everything.candidates)):
+        hits = neighbours.fit_hits(whole.poses.astype(np.float32), whole.widths.astype(np.float32),
+                                   np.full(len(whole), o, np.int32), fits, mask, SPEC, fit_cfg, 0.05, (64, 512), pairs)
+        np.testing.assert_array_equal(kept.poses, whole.poses[~hits])
+        removed += hits.sum()
+    assert removed > 0 and prefer.n_candidates == everything.n_candidates - removed
+
+    blocking = dict(margin=0.3, max_overlap=1.0)  # every hand meets the other object's fit
+    strict = plan(NeighbourFitConfig(in_fallback=True, **blocking))
+    assert not strict.ok and "meet a neighbour's fitted superquadric" in strict.reason
+    rescued = plan(NeighbourFitConfig(in_fallback="prefer", **blocking))
+    assert rescued.ok and rescued.fallback and rescued.n_candidates == everything.n_candidates
+    np.testing.assert_array_equal(rescued.pose, everything.pose)
+    with pytest.raises(ValueError, match="in_fallback"):
+        NeighbourFitConfig(in_fallback="sometimes")

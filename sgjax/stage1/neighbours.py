@@ -35,16 +35,19 @@ from sgjax.stage1.pipeline import ROW_FIELDS, Candidates
 class NeighbourFitConfig:
     """margin: each fit's semi-axes grown by this (metres) before the test; step: the hand's sample
     grid spacing (metres); nearest: fits tested per hand, those whose bounding spheres come closest;
-    object_slots: fits padded to this many (more objects: the next power of two); in_fallback: also in
-    the planner's second plan (`PlannerConfig.fallback_filter`), which by default does without it, as
-    without the other filters beyond the paper's: there it is the objects the first plan found nothing
-    for, and a fit is a guess that may cover the space a good grasp needs (docs/benchmark.md)."""
+    object_slots: fits padded to this many (more objects: the next power of two); in_fallback: in the
+    planner's second plan (`PlannerConfig.fallback_filter`) too: False (default) does without it there,
+    as without the other filters beyond the paper's (it is the objects the first plan found nothing for,
+    and a fit is a guess that may cover the space a good grasp needs; docs/benchmark.md); True removes
+    the candidates there as in the first plan; "prefer" plans with the candidates that pass it and, when
+    they give no grasp, with all of them (the second plan then finds a grasp whenever it would without
+    the test)."""
 
     margin: float = 0.002
     step: float = 0.006
     nearest: int = 4
     object_slots: int = 32
-    in_fallback: bool = False
+    in_fallback: bool | str = False
     # A fit holding more than this fraction of another object's observed points (grown by the margin) is
     # no obstacle for that object's grasps: it is wrong where they go. Single-view fits over-reach into
     # hidden space, and with the footprint (`Stage1Config.footprint`) an object lying on another is fitted
@@ -62,6 +65,8 @@ class NeighbourFitConfig:
             raise ValueError(f"margin must be a finite number >= 0 (metres), got {self.margin}")
         if not self.step > 0.0:
             raise ValueError(f"step must be > 0 metres, got {self.step}")
+        if self.in_fallback not in (False, True, "prefer"):
+            raise ValueError(f"in_fallback must be False, True or 'prefer', got {self.in_fallback!r}")
         if not 0.0 <= self.max_overlap <= 1.0:
             raise ValueError(f"max_overlap must be a fraction in [0, 1], got {self.max_overlap}")
         if self.nearest < 1 or self.object_slots < 1 or self.overlap_points < 1:
