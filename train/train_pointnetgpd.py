@@ -38,10 +38,10 @@ from train.trainer import (
     classification_stats,
     initial_model,
     jit_steps,
-    swapped_fingers,
     make_optimizer,
     run_training,
     steps_builder,
+    swapped_fingers,
 )
 
 
