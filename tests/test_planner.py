@@ -536,18 +536,25 @@ def test_cli_plan(tmp_path, capsys, monkeypatch, small_db):
     assert "sgjax train" in capsys.readouterr().err
 
 
-def test_candidates_meeting_a_neighbours_fit_are_removed(planner):
+def tall_and_low():
     """A tall box with a low one close behind it, the low one's side facing it hidden from the camera:
-    the planner removes the candidates whose hand meets the other object's fitted superquadric (not
-    their observed points: filter (iv) has those), exactly those, counted per object; off, they stay."""
-    from sgjax.stage1 import neighbours
-
+    -> (scene [N, 3], labels [N] (-1 table, 0 tall, 1 low), the tall box's cloud, the low one's)."""
     rng = np.random.default_rng(0)
     xs, ys = np.meshgrid(np.linspace(-0.25, 0.25, 40), np.linspace(-0.25, 0.25, 40))
     table = np.c_[xs.ravel(), ys.ravel(), rng.normal(0, 0.001, xs.size)]
     tall, low = box((0.0, 0.0), (0.02, 0.025, 0.05), 0, seed=0), box((-0.06, 0.0), (0.02, 0.03, 0.02), 0, seed=1)
     points = np.concatenate([table, tall, low])
     labels = np.concatenate([np.full(len(table), -1), np.zeros(len(tall), int), np.ones(len(low), int)])
+    return points, labels, tall, low
+
+
+def test_candidates_meeting_a_neighbours_fit_are_removed(planner):
+    """A tall box with a low one close behind it, the low one's side facing it hidden from the camera:
+    the planner removes the candidates whose hand meets the other object's fitted superquadric (not
+    their observed points: filter (iv) has those), exactly those, counted per object; off, they stay."""
+    from sgjax.stage1 import neighbours
+
+    points, labels, tall, low = tall_and_low()
     config = planner.config
     try:
         with_fits = planner.plan(points, labels, viewpoint=CAMERA)
@@ -577,12 +584,7 @@ def test_second_plan_prefers_candidates_clear_of_the_neighbours_fits(small_db):
     from sgjax.stage1.filters import FilterConfig
     from sgjax.stage1.neighbours import NeighbourFitConfig
 
-    rng = np.random.default_rng(0)
-    xs, ys = np.meshgrid(np.linspace(-0.25, 0.25, 40), np.linspace(-0.25, 0.25, 40))
-    table = np.c_[xs.ravel(), ys.ravel(), rng.normal(0, 0.001, xs.size)]
-    tall, low = box((0.0, 0.0), (0.02, 0.025, 0.05), 0, seed=0), box((-0.06, 0.0), (0.02, 0.03, 0.02), 0, seed=1)
-    points = np.concatenate([table, tall, low])
-    labels = np.concatenate([np.full(len(table), -1), np.zeros(len(tall), int), np.ones(len(low), int)])
+    points, labels, tall, low = tall_and_low()
     strong = rigged([0.0, 5.0], [5.0, 5.0, 5.0])
     starved = dataclasses.replace(CONFIG.stage1, filter=FilterConfig(min_points=5000))  # the first plan finds nothing
     second = dataclasses.replace(CONFIG, stage1=starved, fallback_filter=FilterConfig())
