@@ -61,6 +61,9 @@ VARIANTS = {
     "neighbour-fits-closing": {"planner": {"neighbour_fits": NeighbourFitConfig(closing=True)}},
     # ... and in the second plan as a preference: the candidates that pass it, else all of them.
     "neighbour-fits-prefer": {"planner": {"neighbour_fits": NeighbourFitConfig(in_fallback="prefer")}},
+    # Not a filter: on the chosen object, the passing candidate with the shortest lever arm preferred
+    # (`PlannerConfig.lever_weight`; 2 per metre was the best of 1-4 on the labelled mix-v5 + v6).
+    "lever": {"planner": {"lever_weight": 2.0}},
 }
 
 

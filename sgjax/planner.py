@@ -146,6 +146,13 @@ class PlannerConfig:
         cannot test); refined poses are checked against them too. In the first plan only, unless
         `in_fallback`. None: off (the paper's filters). Default `NeighbourFitConfig()` (2 mm): see
         docs/benchmark.md, "Neighbours' hidden sides".
+    lever_weight: on the object of the best-evaluated candidate, execute the passing candidate (eval_prob
+        above `eval_threshold`) with the highest eval_prob - lever_weight * lever arm
+        (`gripper.lever_arm`: metres from the closing line to the object's visible centroid along the
+        finger width), not simply the highest eval_prob. E-RNet sees a crop around the fingers, not
+        where the rest of the object's weight lies; grasps held far off it drop more often under the
+        disturbance (docs/stage2.md, "The lever arm"). Which object is grasped, and refinements, are
+        chosen as without it. 0 (default): the paper's choice.
     reuse_tolerance: with a `Stage1Memory` passed to `plan`, an object whose cloud is the same as when
         Stage 1 last ran on it, within this many metres (`pointcloud.same_cloud`), keeps those candidates
         and is only tested against the obstacles of now (`Stage1.rescene`). 0: only identical clouds.
@@ -173,6 +180,7 @@ class PlannerConfig:
     fallback_match: MatchConfig | None = None
     reuse_tolerance: float = 0.0005
     neighbour_fits: NeighbourFitConfig | None = NeighbourFitConfig()
+    lever_weight: float = 0.0
 
     def __post_init__(self):
         object.__setattr__(self, "stage1_batch_sizes", tuple(sorted({int(b) for b in self.stage1_batch_sizes})))
@@ -197,6 +205,8 @@ class PlannerConfig:
         if self.avoid_distance < 0 or not 0 <= self.avoid_angle_deg <= 180:
             raise ValueError(f"avoid_distance must be >= 0 and avoid_angle_deg in [0, 180], got "
                              f"{self.avoid_distance} and {self.avoid_angle_deg}")
+        if not (np.isfinite(self.lever_weight) and self.lever_weight >= 0):
+            raise ValueError(f"lever_weight must be a finite number >= 0 (per metre), got {self.lever_weight}")
         if self.fallback_match is not None and self.fallback_filter is None:
             raise ValueError("fallback_match is the second plan's matching: it needs a fallback_filter (the second plan)")
         check_thresholds(self)
@@ -764,6 +774,9 @@ class Planner:
         }
         timing = {"stage1_s": t1 - start, "stage2_s": t2 - t1, "total_s": t2 - start, "compiled": _compile_count() != compiled}
         rejected = 0
+        if cfg.lever_weight > 0 and int(choice["kind"]) == KIND_EVALUATED:
+            centroids = np.stack([np.mean(cloud, axis=0) for _, cloud, _ in objects])[obj]
+            choice = prefer_short_lever(choice, scores, poses[:m], centroids, cfg)
         if cfg.use_refinement and cfg.refine_rescore and int(choice["kind"]) != KIND_EVALUATED:
             choice = self._rescore(scores, poses[:m], widths[:m], scene_pad, scene_mask, seed, thresholds)
             t2 = time.perf_counter()
@@ -899,6 +912,19 @@ class Planner:
             return text + f" and best re-scored refinement {best:.2f} <= {cfg.refine_threshold:g}"
         best_refine = float(scores["refine_prob"][valid].max())
         return text + f" and best refine {best_refine:.2f} <= {cfg.refine_threshold:g}"
+
+
+def prefer_short_lever(choice: dict, scores: dict, poses: np.ndarray, centroids: np.ndarray, cfg: PlannerConfig) -> dict:
+    """An evaluated choice made again with `PlannerConfig.lever_weight`: among the valid candidates on the
+    chosen candidate's object whose eval_prob exceeds the threshold, the highest eval_prob - lever_weight
+    * lever arm (ties: lowest index). poses [M, 4, 4], centroids [M, 3] (each candidate's object's),
+    scores["object"] [M] -> choice, score its eval_prob."""
+    e = np.asarray(scores["eval_prob"], np.float64)
+    same = np.asarray(scores["object"]) == scores["object"][int(choice["index"])]
+    passing = same & np.asarray(scores["valid"], bool) & np.isfinite(e) & (e > cfg.eval_threshold)
+    rank = e - cfg.lever_weight * gripper.lever_arm(poses, centroids, cfg.spec, xp=np)
+    index = int(np.argmax(np.where(passing, rank, -np.inf)))
+    return {**choice, "index": np.int32(index), "score": np.float32(e[index])}
 
 
 def stage2_subset(counts, budget: int) -> tuple[np.ndarray, np.ndarray]:

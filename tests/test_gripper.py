@@ -21,6 +21,7 @@ from sgjax.geometry.gripper import (
     hand_boxes,
     hand_samples,
     in_box,
+    lever_arm,
     near_grasps,
     points_in_closing_region,
     points_in_enlarged_region,
@@ -462,3 +463,19 @@ def test_swap_fingers_is_the_grasp_turned_about_its_approach_axis():
     for variant in range(SPEC.num_refinements):
         np.testing.assert_allclose(rotated_about_approach(refined_pose(pose, variant, SPEC), jnp.pi),
                                    refined_pose(turned, variant, SPEC), atol=1e-6)
+
+
+def test_lever_arm_is_the_offset_along_the_finger_width_from_the_closing_centre():
+    """A point placed at known gripper-frame offsets from the closing region's centre: only the y offset
+    counts (x lies along the closing line, z along the approach), whatever the pose; jnp and np agree."""
+    spec = GripperSpec()
+    rng = np.random.default_rng(3)
+    poses = np.stack([np.asarray(pose_matrix(random_rotation(jax.random.key(k)), jnp.asarray(rng.normal(0, 0.1, 3), jnp.float32))) for k in range(8)]).astype(np.float64)
+    offsets = rng.uniform(-0.05, 0.05, (8, 3))
+    centre = np.array([0.0, 0.0, 0.5 * spec.finger_length])
+    points = np.einsum("mij,mj->mi", poses[:, :3, :3], centre + offsets) + poses[:, :3, 3]
+    np.testing.assert_allclose(lever_arm(poses, points, spec, xp=np), np.abs(offsets[:, 1]), atol=1e-7)
+    np.testing.assert_allclose(np.asarray(lever_arm(poses.astype(np.float32), points.astype(np.float32), spec)),
+                               np.abs(offsets[:, 1]), atol=1e-6)
+    with pytest.raises(ValueError, match=r"shapes \[M, 4, 4\] and \[M, 3\]"):
+        lever_arm(poses, points[:3], spec, xp=np)

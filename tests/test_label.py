@@ -331,3 +331,46 @@ def test_refinements_rescored_as_the_planner_scores_them(whole):
     text = table(out)
     assert "geometric mean (refine_rescore)" in text and "| all |" in text
     np.testing.assert_allclose(rescored_refinement([0.81, 0.0], [0.64, 1.0]), [0.72, 0.0], atol=1e-6)
+
+
+def test_lever_arms_of_labelled_grasps(setup, whole):
+    """`train.lever`: each scored sample's lever arm is measured to the visible centroid of the object it
+    grasps (checked here by another route: the object with the most observed points in the closing
+    region), and with weight 0 the planner's pick is E-RNet's top grasp as `sgjax score-data` counts it."""
+    from envs import camera as camera_lib
+    from sgjax.geometry.gripper import lever_arm, points_in_closing_region
+    from train import score_data
+    from train.judgement import top_success
+    from train.label import labelled_scene
+    from train.lever import lever_directory, planner_rank, table
+
+    objects, _ = setup
+    out = lever_directory(str(whole[0]), progress=False)
+    n = len(out["label"])
+    assert n > 0 and all(len(v) == n for v in out.values())
+    assert np.isfinite(out["lever"]).all() and (out["lever"] >= 0).all()
+    scored = score_data.score_directory(whole[0], resamples=0)
+    assert scored["samples"] == n
+    s1 = out["source"] == sources.source_index("stage1")
+    assert top_success(planner_rank(out["eval_prob"][s1], out["lever"][s1], 0.0), out["label"][s1],
+                       out["scene_seed"][s1]) == pytest.approx(scored["top1_success"])
+    # Scene 0 again: the object whose points fill each sample's closing region, its visible centroid.
+    samples = dataset.read_shards(whole[0], "swept")
+    first = np.flatnonzero(samples["valid"] & (samples["scene_seed"] == scene_seed(CONFIG.seed, 0)))
+    scene, _ = labelled_scene(0, objects, CONFIG)
+    obs = camera_lib.observe(scene, CONFIG.camera, seed=scene_seed(CONFIG.seed, 0))
+    checked = 0
+    for row in first:
+        inside = np.asarray(points_in_closing_region(obs.points.astype(np.float32), samples["pose"][row],
+                                                     samples["width"][row], CONFIG.spec))
+        held = obs.point_labels[inside & (obs.point_labels >= 0)]
+        k = np.bincount(held).argmax() if len(held) else -1
+        if row not in out["row"] or k < 0 or scene.assets[k].name != samples["object_name"][row]:
+            continue  # not scored, or its closing region mostly holds another object
+        centroid = obs.points[obs.point_labels == k].mean(0)
+        expected = lever_arm(samples["pose"][row][None].astype(np.float64), centroid[None], CONFIG.spec, xp=np)[0]
+        assert out["lever"][out["row"] == row][0] == pytest.approx(expected, abs=1e-6)
+        checked += 1
+    assert checked > 0
+    printed = table(out, weights=(0.0, 2.0))
+    assert "| 0 |" in printed and "| 2 |" in printed and "lever arm (cm)" in printed

@@ -16,7 +16,7 @@ from sgjax import planner as planner_mod
 from sgjax.geometry import synthetic
 from sgjax.stage2 import checkpoint, ernet
 from sgjax.stage2.ernet import ERNet, ERNetConfig
-from sgjax.geometry.gripper import GripperSpec, near_grasps, refined_pose
+from sgjax.geometry.gripper import GripperSpec, lever_arm, near_grasps, refined_pose
 from sgjax.planner import Planner, PlannerConfig, decide, select_grasp
 from sgjax.geometry.superquadric import Superquadric
 
@@ -612,3 +612,44 @@ def test_second_plan_prefers_candidates_clear_of_the_neighbours_fits(small_db):
     np.testing.assert_array_equal(rescued.pose, everything.pose)
     with pytest.raises(ValueError, match="in_fallback"):
         NeighbourFitConfig(in_fallback="sometimes")
+
+
+def test_lever_weight_prefers_the_passing_grasp_nearest_its_objects_centroid(small_db, scene):
+    """Heads that ignore their input pass every valid candidate with the same score: without the lever
+    weight the first valid one is executed, with it the one on the same object whose closing line runs
+    nearest the object's visible centroid along the finger width (`gripper.lever_arm`); its score stays
+    its eval_prob."""
+    model = rigged([0.0, 5.0], [-5.0, -5.0, -5.0])
+    plain = Planner(model, small_db, CONFIG).plan(*scene, viewpoint=CAMERA)
+    levered = Planner(model, small_db, dataclasses.replace(CONFIG, lever_weight=2.0)).plan(*scene, viewpoint=CAMERA)
+    s = plain.scores
+    poses = np.stack([plain.candidates[o].poses[r] for o, r in zip(s["object"], s["object_candidate"])])
+    points, labels = scene
+    centroids = np.stack([points[labels == t].mean(0) for t in s["target"]])
+    first_valid = int(np.argmax(s["valid"]))
+    same = s["valid"] & (s["object"] == s["object"][first_valid])
+    arms = np.where(same, lever_arm(poses.astype(np.float64), centroids, SPEC, xp=np), np.inf)
+    assert plain.candidate_index == first_valid and arms[first_valid] > arms.min() + 1e-3  # a choice to change
+    # The shortest arm on that object (a grasp and its jaw-flipped twin can tie to float precision).
+    assert levered.kind == "evaluated" and arms[levered.candidate_index] == pytest.approx(arms.min(), abs=1e-7)
+    assert levered.score == pytest.approx(plain.score)
+    np.testing.assert_array_equal(levered.pose, poses[levered.candidate_index])
+
+
+def test_prefer_short_lever_never_takes_a_candidate_that_does_not_pass():
+    """Only passing candidates on the chosen candidate's object compete (here the chosen one and the third;
+    the second does not pass, the fourth is another object's)."""
+    poses = np.tile(np.eye(4), (3, 1, 1))
+    poses[:, 1, 3] = [0.04, 0.0, 0.02]  # closing lines 4, 0 and 2 cm from the centroid along y
+    scores = {"eval_prob": np.array([0.95, 0.6, 0.9, 0.93]), "valid": np.array([True, True, True, True]),
+              "object": np.array([0, 0, 0, 1])}
+    poses = np.concatenate([poses, np.eye(4)[None]])  # another object's, 0.93 - 0 would rank first
+    choice = {"index": np.int32(0), "kind": np.int32(1), "variant": np.int32(-1), "score": np.float32(0.95), "pose": None}
+    config = dataclasses.replace(CONFIG, lever_weight=4.0)
+    out = planner_mod.prefer_short_lever(choice, scores, poses, np.zeros((4, 3)), config)
+    assert int(out["index"]) == 2 and out["score"] == pytest.approx(0.9)  # 0.9 - 0.08 > 0.95 - 0.16; 0.6 fails
+    light = planner_mod.prefer_short_lever(choice, scores, poses, np.zeros((4, 3)), dataclasses.replace(CONFIG, lever_weight=0.5))
+    assert int(light["index"]) == 0
+    for bad in (-1.0, float("nan")):
+        with pytest.raises(ValueError, match="lever_weight must be a finite number >= 0"):
+            dataclasses.replace(CONFIG, lever_weight=bad)

@@ -510,6 +510,21 @@ def lowest_height(pose: jax.Array, width: jax.Array | float, spec: GripperSpec, 
     return jnp.min(boxes.centre @ normal + offset - reach, -1)
 
 
+def lever_arm(poses, points, spec: GripperSpec, xp=jnp):
+    """How far each point lies from its grasp's closing line across the finger width: poses [M, 4, 4],
+    points [M, 3] (e.g. the target cloud's centroid) -> [M] metres, |(point - centre) . y| with centre
+    the closing region's centre (origin + finger_length / 2 along z) and y the finger-width axis.
+
+    A parallel jaw resists a twist about its closing axis (x) only by friction at two small contacts;
+    the weight of an object held off its centre along y (and a push on it) makes that twist, which is
+    how most grasps that drop under the trial's disturbance fail. xp: jnp, or np on the host."""
+    poses, points = xp.asarray(poses), xp.asarray(points)
+    if poses.ndim != 3 or poses.shape[-2:] != (4, 4) or points.shape != (poses.shape[0], 3):
+        raise ValueError(f"poses and points must have shapes [M, 4, 4] and [M, 3], got {poses.shape} and {points.shape}")
+    centre = poses[:, :3, 3] + 0.5 * spec.finger_length * poses[:, :3, 2]
+    return xp.abs(xp.sum((points - centre) * poses[:, :3, 1], axis=-1))
+
+
 # A grasp this close to one that failed is the same grasp: the closing-region centres within
 # AVOID_DISTANCE and the hands within AVOID_ANGLE_DEG of each other (the decluttering harness's memory).
 AVOID_DISTANCE = 0.01

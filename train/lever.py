@@ -1,0 +1,98 @@
+"""The lever arm of labelled grasps: how far each grasp's closing line runs from its target's visible
+centroid along the finger width (`sgjax.geometry.gripper.lever_arm`), and what preferring short lever
+arms does to the top-scored grasp (`benchmarks/lever_arm.py`; `PlannerConfig.lever_weight`).
+
+E-RNet sees the scene around the fingers, not where the rest of the object's weight lies. A label shard
+stores the scene cloud without the camera's segmentation, so each scene is rebuilt (it depends only on
+the labelling config, the objects and its index: `train.label.labelled_scene`) and observed again with
+the labelling's camera and seed, which gives the same points and their object labels. The target of a
+sample is the object of its name on the table (the one nearest the closing region's centre when the
+scene holds two of it).
+"""
+
+from __future__ import annotations
+
+import jax
+import numpy as np
+from flax import nnx
+from tqdm import tqdm
+
+from envs import camera as camera_lib
+from sgjax.geometry.gripper import lever_arm
+from train import dataset, score_data, trainer
+from train.judgement import top_success
+from train.label import labelled_scene, prepare_objects, read_config
+from train.sources import source_index
+
+COLUMNS = ("row", "scene_seed", "source", "label", "eval_prob", "lever")
+
+
+def lever_directory(directory: str, model=None, progress: bool = True) -> dict[str, np.ndarray]:
+    """Every valid sample of a labelled directory that E-RNet scores (an anchor point in its closing
+    region) -> columns [S]: row (in `dataset.read_shards` order), scene_seed, source, label, eval_prob (`model`: a run directory, None: the
+    shipped E-RNet), lever (metres; NaN when the target shows no point, e.g. after a rebuild on other
+    meshes)."""
+    config = read_config(directory)
+    objects, _ = prepare_objects(config, progress=False)
+    scorer, make_steps = score_data.load_scorer(model)
+    samples = dataset.read_shards([directory], scorer.config.crop)
+    graphdef, params = nnx.split(scorer)
+    _, _, eval_step = make_steps(graphdef, trainer.TrainConfig(model=scorer.config))
+    per = trainer.score_samples(eval_step, params, samples, 128, jax.random.key(0))[1]
+    # read_shards keeps the label shards' order, so their scene indices line up with the crops' rows.
+    index = np.concatenate([dataset.read_label_shard(p)[0]["scene_index"] for p in dataset.shard_paths(directory)])
+    if len(index) != len(samples["label"]):
+        raise dataset.DatasetError(f"{directory}: holds sample shards as well as label shards; give a labelled directory")
+    lever = np.full(len(index), np.nan)
+    spec = config.spec
+    scenes = np.unique(index)
+    for scene_index in tqdm(scenes, desc="scenes", disable=not progress):
+        rows = np.flatnonzero(index == scene_index)
+        scene, _ = labelled_scene(int(scene_index), objects, config)
+        obs = camera_lib.observe(scene, config.camera, seed=int(samples["scene_seed"][rows[0]]))
+        names = [scene.assets[k].name if scene.present[k] else None for k in range(scene.n_objects)]
+        coms = scene.object_poses()[:, :3]
+        poses = samples["pose"][rows].astype(np.float64)
+        centres = poses[:, :3, 3] + 0.5 * spec.finger_length * poses[:, :3, 2]
+        centroids = np.full((len(rows), 3), np.nan)
+        for i, (name, centre) in enumerate(zip(samples["object_name"][rows], centres)):
+            same = [k for k, n in enumerate(names) if n == name]
+            if not same:
+                continue
+            k = min(same, key=lambda k: np.linalg.norm(coms[k] - centre))
+            seen = obs.points[obs.point_labels == k]
+            if len(seen):
+                centroids[i] = seen.mean(0)
+        lever[rows] = lever_arm(poses, centroids, spec, xp=np)
+    keep = samples["valid"] & (per["weight"] > 0)
+    out = {"row": np.arange(len(index)), "scene_seed": samples["scene_seed"], "source": samples["source"], "label": samples["label"].astype(bool),
+           "eval_prob": per["prob"], "lever": lever}
+    return {k: np.asarray(v)[keep] for k, v in out.items()}
+
+
+def planner_rank(eval_prob: np.ndarray, lever: np.ndarray, weight: float, threshold: float = 0.7) -> np.ndarray:
+    """The planner's order with `PlannerConfig.lever_weight` = weight: samples whose eval_prob exceeds the
+    threshold first, by eval_prob - weight * lever; then the rest by eval_prob. [S] -> [S] (higher first)."""
+    passing = eval_prob > threshold
+    # The passing block sits above every non-passing score (eval_prob <= threshold < 1 + threshold).
+    shifted = eval_prob - weight * np.nan_to_num(lever, nan=0.0)
+    return np.where(passing, 2.0 + shifted - shifted.min(initial=0.0), eval_prob)
+
+
+def table(columns: dict[str, np.ndarray], weights=(0.0, 0.5, 1.0, 2.0, 4.0, 8.0), threshold: float = 0.7,
+          bins=(0.0, 0.01, 0.02, 0.03, 0.05, np.inf)) -> str:
+    """Markdown: per scene, the success of the planner's pick among the Stage-1 samples for each weight;
+    and the success of Stage-1 samples E-RNet passes, by lever arm."""
+    s1 = columns["source"] == source_index("stage1")
+    scene, label, e, arm = (columns[k][s1] for k in ("scene_seed", "label", "eval_prob", "lever"))
+    lines = ["| lever weight (per m) | top Stage-1 grasp succeeds |", "|---:|---:|"]
+    for w in weights:
+        lines.append(f"| {w:g} | {top_success(planner_rank(e, arm, w, threshold), label, scene):.4f} |")
+    lines += ["", f"Stage-1 samples with eval_prob > {threshold:g}, by lever arm:", "",
+              "| lever arm (cm) | samples | success |", "|---|---:|---:|"]
+    passing = e > threshold
+    for lo, hi in zip(bins[:-1], bins[1:]):
+        rows = passing & (arm >= lo) & (arm < hi)
+        rate = f"{label[rows].mean():.3f}" if rows.any() else "–"
+        lines.append(f"| {lo * 100:g}-{hi * 100:g} | {int(rows.sum())} | {rate} |")
+    return "\n".join(lines)
