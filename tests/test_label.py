@@ -342,7 +342,7 @@ def test_lever_arms_of_labelled_grasps(setup, whole):
     from train import score_data
     from train.judgement import top_success
     from train.label import labelled_scene
-    from train.lever import lever_directory, planner_rank, table
+    from train.lever import lever_directory, planner_picks, table
 
     objects, _ = setup
     out = lever_directory(str(whole[0]), progress=False)
@@ -352,8 +352,16 @@ def test_lever_arms_of_labelled_grasps(setup, whole):
     scored = score_data.score_directory(whole[0], resamples=0)
     assert scored["samples"] == n
     s1 = out["source"] == sources.source_index("stage1")
-    assert top_success(planner_rank(out["eval_prob"][s1], out["lever"][s1], 0.0), out["label"][s1],
-                       out["scene_seed"][s1]) == pytest.approx(scored["top1_success"])
+    stage1 = {k: v[s1] for k, v in out.items()}
+    assert stage1["label"][planner_picks(stage1, 0.0)].mean() == pytest.approx(scored["top1_success"])
+    assert top_success(stage1["eval_prob"], stage1["label"], stage1["scene_seed"]) == pytest.approx(scored["top1_success"])
+    # A huge weight: the pick is the passing sample on the top sample's object with the shortest arm.
+    for pick in planner_picks(stage1, 1e6):
+        scene = stage1["scene_seed"] == stage1["scene_seed"][pick]
+        top = np.flatnonzero(scene)[np.argmax(stage1["eval_prob"][scene])]
+        if stage1["eval_prob"][top] > 0.7:
+            rivals = scene & (stage1["target"] == stage1["target"][top]) & (stage1["eval_prob"] > 0.7)
+            assert stage1["target"][pick] == stage1["target"][top] and stage1["lever"][pick] == stage1["lever"][rivals].min()
     # Scene 0 again: the object whose points fill each sample's closing region, its visible centroid.
     samples = dataset.read_shards(whole[0], "swept")
     first = np.flatnonzero(samples["valid"] & (samples["scene_seed"] == scene_seed(CONFIG.seed, 0)))

@@ -20,18 +20,18 @@ from tqdm import tqdm
 from envs import camera as camera_lib
 from sgjax.geometry.gripper import lever_arm
 from train import dataset, score_data, trainer
-from train.judgement import top_success
 from train.label import labelled_scene, prepare_objects, read_config
 from train.sources import source_index
 
-COLUMNS = ("row", "scene_seed", "source", "label", "eval_prob", "lever")
+COLUMNS = ("row", "scene_seed", "source", "label", "eval_prob", "target", "lever")
 
 
 def lever_directory(directory: str, model=None, progress: bool = True) -> dict[str, np.ndarray]:
     """Every valid sample of a labelled directory that E-RNet scores (an anchor point in its closing
-    region) -> columns [S]: row (in `dataset.read_shards` order), scene_seed, source, label, eval_prob (`model`: a run directory, None: the
-    shipped E-RNet), lever (metres; NaN when the target shows no point, e.g. after a rebuild on other
-    meshes)."""
+    region) -> columns [S]: row (in `dataset.read_shards` order), scene_seed, source, label, eval_prob
+    (`model`: a run directory, None: the shipped E-RNet), target (the object's index in its scene, -1
+    when not found, e.g. after a rebuild on other meshes), lever (metres; NaN without a target or when
+    it shows no point)."""
     config = read_config(directory)
     objects, _ = prepare_objects(config, progress=False)
     scorer, make_steps = score_data.load_scorer(model)
@@ -44,6 +44,7 @@ def lever_directory(directory: str, model=None, progress: bool = True) -> dict[s
     if len(index) != len(samples["label"]):
         raise dataset.DatasetError(f"{directory}: holds sample shards as well as label shards; give a labelled directory")
     lever = np.full(len(index), np.nan)
+    target = np.full(len(index), -1)
     spec = config.spec
     scenes = np.unique(index)
     for scene_index in tqdm(scenes, desc="scenes", disable=not progress):
@@ -59,24 +60,34 @@ def lever_directory(directory: str, model=None, progress: bool = True) -> dict[s
             same = [k for k, n in enumerate(names) if n == name]
             if not same:
                 continue
-            k = min(same, key=lambda k: np.linalg.norm(coms[k] - centre))
+            k = target[rows[i]] = min(same, key=lambda k: np.linalg.norm(coms[k] - centre))
             seen = obs.points[obs.point_labels == k]
             if len(seen):
                 centroids[i] = seen.mean(0)
         lever[rows] = lever_arm(poses, centroids, spec, xp=np)
     keep = samples["valid"] & (per["weight"] > 0)
     out = {"row": np.arange(len(index)), "scene_seed": samples["scene_seed"], "source": samples["source"], "label": samples["label"].astype(bool),
-           "eval_prob": per["prob"], "lever": lever}
+           "eval_prob": per["prob"], "target": target, "lever": lever}
     return {k: np.asarray(v)[keep] for k, v in out.items()}
 
 
-def planner_rank(eval_prob: np.ndarray, lever: np.ndarray, weight: float, threshold: float = 0.7) -> np.ndarray:
-    """The planner's order with `PlannerConfig.lever_weight` = weight: samples whose eval_prob exceeds the
-    threshold first, by eval_prob - weight * lever; then the rest by eval_prob. [S] -> [S] (higher first)."""
-    passing = eval_prob > threshold
-    # The passing block sits above every non-passing score (eval_prob <= threshold < 1 + threshold).
-    shifted = eval_prob - weight * np.nan_to_num(lever, nan=0.0)
-    return np.where(passing, 2.0 + shifted - shifted.min(initial=0.0), eval_prob)
+def planner_picks(columns: dict[str, np.ndarray], weight: float, threshold: float = 0.7) -> np.ndarray:
+    """The sample the planner executes in each scene with `PlannerConfig.lever_weight` = weight, among the
+    given samples (columns of `lever_directory`) -> their indices [scenes], in scene order. The highest
+    eval_prob (ties: the first) when it does not pass the threshold; else, among the passing samples on
+    that sample's object, the highest eval_prob - weight * lever arm. Weight 0: E-RNet's top sample, as
+    `train.judgement.top_success` counts it."""
+    e = np.asarray(columns["eval_prob"], np.float64)
+    rank = e - weight * np.nan_to_num(columns["lever"], nan=0.0)
+    picks = []
+    for scene in np.unique(columns["scene_seed"]):
+        rows = np.flatnonzero(columns["scene_seed"] == scene)
+        best = rows[np.argmax(e[rows])]
+        if e[best] > threshold:
+            rows = rows[(columns["target"][rows] == columns["target"][best]) & (e[rows] > threshold)]
+            best = rows[np.argmax(rank[rows])]
+        picks.append(best)
+    return np.asarray(picks, np.int64)
 
 
 def table(columns: dict[str, np.ndarray], weights=(0.0, 0.5, 1.0, 2.0, 4.0, 8.0), threshold: float = 0.7,
@@ -84,10 +95,11 @@ def table(columns: dict[str, np.ndarray], weights=(0.0, 0.5, 1.0, 2.0, 4.0, 8.0)
     """Markdown: per scene, the success of the planner's pick among the Stage-1 samples for each weight;
     and the success of Stage-1 samples E-RNet passes, by lever arm."""
     s1 = columns["source"] == source_index("stage1")
-    scene, label, e, arm = (columns[k][s1] for k in ("scene_seed", "label", "eval_prob", "lever"))
-    lines = ["| lever weight (per m) | top Stage-1 grasp succeeds |", "|---:|---:|"]
+    stage1 = {k: np.asarray(v)[s1] for k, v in columns.items()}
+    label, e, arm = stage1["label"], stage1["eval_prob"], stage1["lever"]
+    lines = ["| lever weight (per m) | the planner's Stage-1 pick succeeds |", "|---:|---:|"]
     for w in weights:
-        lines.append(f"| {w:g} | {top_success(planner_rank(e, arm, w, threshold), label, scene):.4f} |")
+        lines.append(f"| {w:g} | {label[planner_picks(stage1, w, threshold)].mean():.4f} |")
     lines += ["", f"Stage-1 samples with eval_prob > {threshold:g}, by lever arm:", "",
               "| lever arm (cm) | samples | success |", "|---|---:|---:|"]
     passing = e > threshold
