@@ -151,7 +151,7 @@ class PlannerConfig:
         (`gripper.lever_arm`: metres from the closing line to the object's visible centroid along the
         finger width), not simply the highest eval_prob. E-RNet sees a crop around the fingers, not
         where the rest of the object's weight lies; grasps held far off it drop more often under the
-        disturbance (docs/stage2.md, "The lever arm"). Which object is grasped, and refinements, are
+        disturbance (docs/benchmark.md, "The lever arm"). Which object is grasped, and refinements, are
         chosen as without it. 0 (default): the paper's choice.
     reuse_tolerance: with a `Stage1Memory` passed to `plan`, an object whose cloud is the same as when
         Stage 1 last ran on it, within this many metres (`pointcloud.same_cloud`), keeps those candidates
