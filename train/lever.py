@@ -12,6 +12,9 @@ scene holds two of it).
 
 from __future__ import annotations
 
+import os
+from collections.abc import Sequence
+
 import jax
 import numpy as np
 from flax import nnx
@@ -26,7 +29,8 @@ from train.sources import source_index
 COLUMNS = ("row", "scene_seed", "source", "label", "eval_prob", "target", "lever")
 
 
-def lever_directory(directory: str, model=None, progress: bool = True) -> dict[str, np.ndarray]:
+def lever_directory(directory: str | os.PathLike, model: str | os.PathLike | None = None,
+                    progress: bool = True) -> dict[str, np.ndarray]:
     """Every valid sample of a labelled directory that E-RNet scores (an anchor point in its closing
     region) -> columns [S]: row (in `dataset.read_shards` order), scene_seed, source, label, eval_prob
     (`model`: a run directory, None: the shipped E-RNet), target (the object's index in its scene, -1
@@ -46,8 +50,7 @@ def lever_directory(directory: str, model=None, progress: bool = True) -> dict[s
     lever = np.full(len(index), np.nan)
     target = np.full(len(index), -1)
     spec = config.spec
-    scenes = np.unique(index)
-    for scene_index in tqdm(scenes, desc="scenes", disable=not progress):
+    for scene_index in tqdm(np.unique(index), desc="scenes", disable=not progress):
         rows = np.flatnonzero(index == scene_index)
         scene, _ = labelled_scene(int(scene_index), objects, config)
         obs = camera_lib.observe(scene, config.camera, seed=int(samples["scene_seed"][rows[0]]))
@@ -66,8 +69,8 @@ def lever_directory(directory: str, model=None, progress: bool = True) -> dict[s
                 centroids[i] = seen.mean(0)
         lever[rows] = lever_arm(poses, centroids, spec, xp=np)
     keep = samples["valid"] & (per["weight"] > 0)
-    out = {"row": np.arange(len(index)), "scene_seed": samples["scene_seed"], "source": samples["source"], "label": samples["label"].astype(bool),
-           "eval_prob": per["prob"], "target": target, "lever": lever}
+    out = {"row": np.arange(len(index)), "scene_seed": samples["scene_seed"], "source": samples["source"],
+           "label": samples["label"].astype(bool), "eval_prob": per["prob"], "target": target, "lever": lever}
     return {k: np.asarray(v)[keep] for k, v in out.items()}
 
 
@@ -90,8 +93,8 @@ def planner_picks(columns: dict[str, np.ndarray], weight: float, threshold: floa
     return np.asarray(picks, np.int64)
 
 
-def table(columns: dict[str, np.ndarray], weights=(0.0, 0.5, 1.0, 2.0, 4.0, 8.0), threshold: float = 0.7,
-          bins=(0.0, 0.01, 0.02, 0.03, 0.05, np.inf)) -> str:
+def table(columns: dict[str, np.ndarray], weights: Sequence[float] = (0.0, 0.5, 1.0, 2.0, 4.0, 8.0),
+          threshold: float = 0.7, bins: Sequence[float] = (0.0, 0.01, 0.02, 0.03, 0.05, np.inf)) -> str:
     """Markdown: per scene, the success of the planner's pick among the Stage-1 samples for each weight;
     and the success of Stage-1 samples E-RNet passes, by lever arm."""
     s1 = columns["source"] == source_index("stage1")
