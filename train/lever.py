@@ -21,7 +21,7 @@ from flax import nnx
 from tqdm import tqdm
 
 from envs import camera as camera_lib
-from sgjax.geometry.gripper import lever_arm
+from sgjax.geometry.gripper import closing_centre, lever_arm
 from train import dataset, score_data, trainer
 from train.label import labelled_scene, prepare_objects, read_config
 from train.sources import source_index
@@ -57,7 +57,7 @@ def lever_directory(directory: str | os.PathLike, model: str | os.PathLike | Non
         names = [scene.assets[k].name if scene.present[k] else None for k in range(scene.n_objects)]
         coms = scene.object_poses()[:, :3]
         poses = samples["pose"][rows].astype(np.float64)
-        centres = poses[:, :3, 3] + 0.5 * spec.finger_length * poses[:, :3, 2]
+        centres = closing_centre(poses, spec, xp=np)
         centroids = np.full((len(rows), 3), np.nan)
         for i, (name, centre) in enumerate(zip(samples["object_name"][rows], centres)):
             same = [k for k, n in enumerate(names) if n == name]

@@ -510,6 +510,13 @@ def lowest_height(pose: jax.Array, width: jax.Array | float, spec: GripperSpec, 
     return jnp.min(boxes.centre @ normal + offset - reach, -1)
 
 
+def closing_centre(poses, spec: GripperSpec, xp=jnp):
+    """The closing region's centre (the origin moved finger_length / 2 along the approach z):
+    poses [..., 4, 4] -> [..., 3]. xp: jnp, or np on the host."""
+    poses = xp.asarray(poses)
+    return poses[..., :3, 3] + 0.5 * spec.finger_length * poses[..., :3, 2]
+
+
 def lever_arm(poses, points, spec: GripperSpec, xp=jnp):
     """How far each point lies from its grasp's closing line across the finger width: poses [M, 4, 4],
     points [M, 3] (e.g. the target cloud's centroid) -> [M] metres, |(point - centre) . y| with centre
@@ -521,8 +528,7 @@ def lever_arm(poses, points, spec: GripperSpec, xp=jnp):
     poses, points = xp.asarray(poses), xp.asarray(points)
     if poses.ndim != 3 or poses.shape[-2:] != (4, 4) or points.shape != (poses.shape[0], 3):
         raise ValueError(f"poses and points must have shapes [M, 4, 4] and [M, 3], got {poses.shape} and {points.shape}")
-    centre = poses[:, :3, 3] + 0.5 * spec.finger_length * poses[:, :3, 2]
-    return xp.abs(xp.sum((points - centre) * poses[:, :3, 1], axis=-1))
+    return xp.abs(xp.sum((points - closing_centre(poses, spec, xp)) * poses[:, :3, 1], axis=-1))
 
 
 # A grasp this close to one that failed is the same grasp: the closing-region centres within
@@ -543,8 +549,7 @@ def near_grasps(poses, others, spec: GripperSpec, max_distance: float = AVOID_DI
     poses, others = xp.asarray(poses), xp.asarray(others)
     if poses.ndim != 3 or poses.shape[-2:] != (4, 4) or others.ndim != 3 or others.shape[-2:] != (4, 4):
         raise ValueError(f"poses and others must have shapes [K, 4, 4] and [F, 4, 4], got {poses.shape} and {others.shape}")
-    half = 0.5 * spec.finger_length
-    centre = lambda p: p[:, :3, 3] + half * p[:, :3, 2]
+    centre = lambda p: closing_centre(p, spec, xp)
     close = xp.linalg.norm(centre(poses)[:, None] - centre(others)[None], axis=-1) <= max_distance + 1e-9
     dots = xp.einsum("kia,fia->kfa", poses[:, :3, :3], others[:, :3, :3])  # axis-by-axis cosines [K, F, 3]
     trace = xp.maximum(dots.sum(-1), dots[..., 2] - dots[..., 0] - dots[..., 1])  # R or R turned 180 deg about z
