@@ -17,7 +17,6 @@ from collections.abc import Sequence
 
 import jax
 import numpy as np
-from flax import nnx
 from tqdm import tqdm
 
 from envs import camera as camera_lib
@@ -38,10 +37,8 @@ def lever_directory(directory: str | os.PathLike, model: str | os.PathLike | Non
     it shows no point)."""
     config = read_config(directory)
     objects, _ = prepare_objects(config, progress=False)
-    scorer, make_steps = score_data.load_scorer(model)
+    scorer, eval_step, params = score_data.load_eval_step(model)
     samples = dataset.read_shards([directory], scorer.config.crop)
-    graphdef, params = nnx.split(scorer)
-    _, _, eval_step = make_steps(graphdef, trainer.TrainConfig(model=scorer.config))
     per = trainer.score_samples(eval_step, params, samples, 128, jax.random.key(0))[1]
     # read_shards keeps the label shards' order, so their scene indices line up with the crops' rows.
     index = np.concatenate([dataset.read_label_shard(p)[0]["scene_index"] for p in dataset.shard_paths(directory)])

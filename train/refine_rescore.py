@@ -16,12 +16,11 @@ import os
 
 import jax
 import numpy as np
-from flax import nnx
 
 from sgjax.geometry import gripper
 from sgjax.planner import rescored_refinement
 from train import dataset, judgement, sources, trainer
-from train.score_data import load_scorer
+from train.score_data import load_eval_step
 
 
 def rescore_directory(data: str | os.PathLike, model: str | os.PathLike | None = None, progress: bool = True) -> dict[str, np.ndarray]:
@@ -33,11 +32,9 @@ def rescore_directory(data: str | os.PathLike, model: str | os.PathLike | None =
     label, source, scene_seed."""
     from tqdm.auto import tqdm
 
-    scorer, make_steps = load_scorer(model, "ernet")
-    config = trainer.TrainConfig(model=scorer.config, batch_size=128)
+    scorer, eval_step, params = load_eval_step(model, "ernet")
     crop = getattr(scorer.config, "crop", "enlarged")
-    graphdef, params = nnx.split(scorer)
-    _, _, eval_step = make_steps(graphdef, config)
+    spec = trainer.TrainConfig(model=scorer.config).spec  # the spec the eval step crops with
     key = jax.random.key(0)
     paths = dataset.shard_paths(data)
     if not paths:
@@ -48,11 +45,11 @@ def rescore_directory(data: str | os.PathLike, model: str | os.PathLike | None =
         samples = dataset.select(samples, np.flatnonzero(samples["valid"]))
         if not len(samples["label"]):
             continue
-        base = trainer.score_samples(eval_step, params, dataset.crop_samples(samples, clouds, config.spec, crop), 128, key)[1]
+        base = trainer.score_samples(eval_step, params, dataset.crop_samples(samples, clouds, spec, crop), 128, key)[1]
         judged = []
-        for k in range(config.spec.num_refinements):
-            moved = {**samples, "pose": np.asarray(gripper.refined_pose(samples["pose"], k, config.spec), np.float32)}
-            out = trainer.score_samples(eval_step, params, dataset.crop_samples(moved, clouds, config.spec, crop), 128, key)[1]
+        for k in range(spec.num_refinements):
+            moved = {**samples, "pose": np.asarray(gripper.refined_pose(samples["pose"], k, spec), np.float32)}
+            out = trainer.score_samples(eval_step, params, dataset.crop_samples(moved, clouds, spec, crop), 128, key)[1]
             judged.append(np.where(out["weight"] > 0, out["prob"], 0.0))
         keep = base["weight"] > 0  # samples with an anchor point at their own pose (the planner's valid)
         columns.append({"eval_prob": base["prob"][keep], "refine_prob": base["refine_prob"][keep],

@@ -35,6 +35,15 @@ def load_scorer(model: str | os.PathLike | None, network: str = "ernet"):
     raise ValueError(f"network must be 'ernet' or 'pointnetgpd', got {network!r}")
 
 
+def load_eval_step(model: str | os.PathLike | None, network: str = "ernet", batch_size: int = 128):
+    """-> (scorer, eval_step, params): `load_scorer`'s model, the trainer's evaluation step for it (no
+    noise; per-sample outputs) and its parameters, ready for `trainer.score_samples`."""
+    scorer, make_steps = load_scorer(model, network)
+    graphdef, params = nnx.split(scorer)
+    _, _, eval_step = make_steps(graphdef, trainer.TrainConfig(model=scorer.config, batch_size=batch_size))
+    return scorer, eval_step, params
+
+
 def score_directory(data: str | os.PathLike | Sequence[str | os.PathLike], model=None, network: str = "ernet",
                     batch_size: int = 128, held_out: float | None = None, seed: int = 0,
                     resamples: int = 1000) -> dict[str, Any]:
@@ -53,8 +62,7 @@ def score_directory(data: str | os.PathLike | Sequence[str | os.PathLike], model
     "seen_objects" (None when empty)."""
     if resamples < 0:
         raise ValueError(f"resamples must be >= 0, got {resamples}")
-    scorer, make_steps = load_scorer(model, network)
-    config = trainer.TrainConfig(model=scorer.config, batch_size=batch_size)
+    scorer, eval_step, params = load_eval_step(model, network, batch_size)
     samples = dataset.read_shards(data, getattr(scorer.config, "crop", "enlarged"))
     keep = samples["valid"]
     if held_out is not None:
@@ -64,8 +72,6 @@ def score_directory(data: str | os.PathLike | Sequence[str | os.PathLike], model
     samples = dataset.select(samples, np.flatnonzero(keep))
     if not len(samples["label"]):
         raise dataset.DatasetError(f"{data}: no valid samples" + ("" if held_out is None else " in the held-out scenes"))
-    graphdef, params = nnx.split(scorer)
-    _, _, eval_step = make_steps(graphdef, config)
     key = jax.random.key(0)
     groups = {
         "all": np.ones(len(samples["label"]), bool),
