@@ -24,7 +24,7 @@ from flax import nnx
 
 from sgjax.stage2 import crops, ernet
 from sgjax.geometry import synthetic
-from sgjax.stage2.ernet import ERNet, ERNetConfig
+from sgjax.stage2.ernet import LIGHT_BACKBONE, ERNet, ERNetConfig
 from sgjax.stage2.pointnet2 import BackboneConfig, SetAbstractionConfig
 from sgjax.geometry.gripper import GripperSpec
 from sgjax.geometry.superquadric import Superquadric
@@ -45,6 +45,11 @@ CONFIGS = {
         ),
     ),
     "paper-swept": lambda: ERNetConfig.paper(hand_points=32),
+    # light-swept with 96-wide feature propagation and 256 / 128 heads (docs/stage2.md, "A wider network").
+    "wide-swept": lambda: ERNetConfig.light(
+        hand_points=32, eval_hidden=(256, 128), refine_hidden=(256, 128),
+        backbone=BackboneConfig(LIGHT_BACKBONE.set_abstraction, ((96,), (96, 96)), sampler="random"),
+    ),
 }
 
 

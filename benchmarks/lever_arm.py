@@ -5,8 +5,9 @@
 For each labelled directory (and all of them pooled): per scene, whether the grasp the planner would
 execute among its Stage-1 samples succeeds, with each lever weight (0: the highest eval_prob, E-RNet's
 top grasp as `sgjax score-data` counts it); and the success of the samples E-RNet passes by their lever
-arm. How the lever arm is measured: `train/lever.py` (each scene is rebuilt and observed again, ~0.2 s
-per scene). --out writes the per-sample columns of all directories.
+arm; and the fitted superquadric's centre as evidence (`train.lever.fit_table`). How both are
+measured: `train/lever.py` (each scene is rebuilt and observed again, ~0.2 s per scene). --out writes
+the per-sample columns of all directories.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ import numpy as np
 
 from sgjax.utils.files import atomic_write
 from train.dataset import DatasetError
-from train.lever import COLUMNS, lever_directory, table
+from train.lever import COLUMNS, fit_table, lever_directory, table
 
 
 def main() -> None:
@@ -32,12 +33,14 @@ def main() -> None:
     try:
         for directory in args.directories:
             parts.append(lever_directory(directory, args.model))
-            print(f"\n### {directory}\n\n{table(parts[-1], args.weights, args.threshold)}", flush=True)
+            tables = f"{table(parts[-1], args.weights, args.threshold)}\n\n{fit_table(parts[-1])}"
+            print(f"\n### {directory}\n\n{tables}", flush=True)
     except (DatasetError, FileNotFoundError) as exc:
         raise SystemExit(str(exc)) from None
     pooled = {k: np.concatenate([p[k] for p in parts]) for k in COLUMNS}
     if len(parts) > 1:
-        print(f"\n### all {len(parts)} directories\n\n{table(pooled, args.weights, args.threshold)}")
+        tables = f"{table(pooled, args.weights, args.threshold)}\n\n{fit_table(pooled)}"
+        print(f"\n### all {len(parts)} directories\n\n{tables}")
     if args.out:
         atomic_write(args.out, lambda tmp: np.savez(tmp, **pooled))
 

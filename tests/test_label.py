@@ -338,11 +338,13 @@ def test_lever_arms_of_labelled_grasps(setup, whole):
     grasps (checked here by another route: the object with the most observed points in the closing
     region), and with weight 0 the planner's pick is E-RNet's top grasp as `sgjax score-data` counts it."""
     from envs import camera as camera_lib
-    from sgjax.geometry.gripper import lever_arm, points_in_closing_region
+    from sgjax.geometry import pointcloud
+    from sgjax.geometry.gripper import closing_centre, lever_arm, points_in_closing_region
+    from sgjax.stage1 import ems
     from train import score_data
     from train.judgement import top_success
     from train.label import labelled_scene
-    from train.lever import lever_directory, planner_picks, table
+    from train.lever import fit_table, lever_directory, planner_picks, table
 
     objects, _ = setup
     out = lever_directory(str(whole[0]), progress=False)
@@ -378,7 +380,18 @@ def test_lever_arms_of_labelled_grasps(setup, whole):
         centroid = obs.points[obs.point_labels == k].mean(0)
         expected = lever_arm(samples["pose"][row][None].astype(np.float64), centroid[None], CONFIG.spec, xp=np)[0]
         assert out["lever"][out["row"] == row][0] == pytest.approx(expected, abs=1e-6)
+        # The fitted centre: that object's visible points fitted alone, as Stage 1 fits them.
+        cloud = pointcloud.downsample(obs.points[obs.point_labels == k], CONFIG.stage1.max_object_points, 0)
+        batch, mask = pointcloud.pad_clouds([cloud], n_points=CONFIG.stage1.max_object_points)
+        fit = ems.fit_superquadrics(batch, mask, CONFIG.stage1.ems, np.asarray(CONFIG.camera.position, np.float32))
+        pose = samples["pose"][row].astype(np.float64)
+        offset = pose[:3, :3].T @ (np.asarray(fit.translation[0], np.float64) - closing_centre(pose[None], CONFIG.spec, xp=np)[0])
+        np.testing.assert_allclose(out["fit_offset"][out["row"] == row][0], offset, atol=2e-4)
+        assert np.linalg.norm(np.asarray(fit.translation[0]) - centroid) < 0.05  # near what the camera saw
         checked += 1
     assert checked > 0
     printed = table(out, weights=(0.0, 2.0))
     assert "| 0 |" in printed and "| 2 |" in printed and "lever arm (cm)" in printed
+    # Weight 0 of the fit table is E-RNet's top grasp too.
+    fitted = fit_table(out, weights=(0.0,))
+    assert f"| 0 | {scored['top1_success']:.3f} |" in fitted and "fit offset x (closing)" in fitted

@@ -1,6 +1,8 @@
 """The lever arm of labelled grasps: how far each grasp's closing line runs from its target's visible
 centroid along the finger width (`sgjax.geometry.gripper.lever_arm`), and what preferring short lever
-arms does to the top-scored grasp (`benchmarks/lever_arm.py`; `PlannerConfig.lever_weight`).
+arms does to the top-scored grasp (`benchmarks/lever_arm.py`; `PlannerConfig.lever_weight`). Beside it,
+where the superquadric Stage 1 fits to the target's visible cloud puts the object's centre (the fit
+completes the hidden side), as an offset in the grasp frame (`fit_offset`, `fit_table`).
 
 E-RNet sees the scene around the fingers, not where the rest of the object's weight lies. A label shard
 stores the scene cloud without the camera's segmentation, so each scene is rebuilt (it depends only on
@@ -20,12 +22,15 @@ import numpy as np
 from tqdm import tqdm
 
 from envs import camera as camera_lib
+from sgjax.geometry import pointcloud
 from sgjax.geometry.gripper import closing_centre, lever_arm
-from train import dataset, score_data, trainer
+from sgjax.stage1 import ems
+from train import dataset, judgement, score_data, trainer
 from train.label import labelled_scene, prepare_objects, read_config
 from train.sources import source_index
 
-COLUMNS = ("row", "scene_seed", "source", "label", "eval_prob", "target", "lever")
+COLUMNS = ("row", "scene_seed", "source", "label", "eval_prob", "target", "lever", "fit_offset")
+MIN_FIT_POINTS = 10  # fewer visible points than this: no fit (as Stage 1, whose EMS needs a few)
 
 
 def lever_directory(directory: str | os.PathLike, model: str | os.PathLike | None = None,
@@ -34,7 +39,9 @@ def lever_directory(directory: str | os.PathLike, model: str | os.PathLike | Non
     region) -> columns [S]: row (in `dataset.read_shards` order), scene_seed, source, label, eval_prob
     (`model`: a run directory, None: the shipped E-RNet), target (the object's index in its scene, -1
     when not found, e.g. after a rebuild on other meshes), lever (metres; NaN without a target or when
-    it shows no point)."""
+    it shows no point), fit_offset [S, 3] (metres, grasp frame: the centre of the superquadric fitted to
+    the target's visible points, with the camera as viewpoint and Stage 1's EMS settings, minus the
+    closing region's centre; NaN without a target or with fewer than MIN_FIT_POINTS points)."""
     config = read_config(directory)
     objects, _ = prepare_objects(config, progress=False)
     scorer, eval_step, params = score_data.load_eval_step(model)
@@ -46,7 +53,9 @@ def lever_directory(directory: str | os.PathLike, model: str | os.PathLike | Non
         raise dataset.DatasetError(f"{directory}: holds sample shards as well as label shards; give a labelled directory")
     lever = np.full(len(index), np.nan)
     target = np.full(len(index), -1)
-    spec = config.spec
+    fit_offset = np.full((len(index), 3), np.nan)
+    spec, stage1 = config.spec, config.stage1
+    viewpoint = np.asarray(config.camera.position, np.float32)
     for scene_index in tqdm(np.unique(index), desc="scenes", disable=not progress):
         rows = np.flatnonzero(index == scene_index)
         scene, _ = labelled_scene(int(scene_index), objects, config)
@@ -65,9 +74,21 @@ def lever_directory(directory: str | os.PathLike, model: str | os.PathLike | Non
             if len(seen):
                 centroids[i] = seen.mean(0)
         lever[rows] = lever_arm(poses, centroids, spec, xp=np)
+        fitted = [k for k in np.unique(target[rows]) if k >= 0 and (obs.point_labels == k).sum() >= MIN_FIT_POINTS]
+        if fitted:
+            # One batch per scene, padded to the scene's object count so that every scene reuses one compile.
+            limit = stage1.max_object_points
+            clouds = [pointcloud.downsample(obs.points[obs.point_labels == k], limit, 0) for k in fitted]
+            clouds += [clouds[0]] * (scene.n_objects - len(clouds))
+            batch, mask = pointcloud.pad_clouds(clouds, limit, n_points=limit)
+            centre = np.asarray(ems.fit_superquadrics(batch, mask, stage1.ems, viewpoint).translation, np.float64)
+            for i, row in enumerate(rows):
+                if target[row] in fitted:
+                    fit_offset[row] = poses[i, :3, :3].T @ (centre[fitted.index(target[row])] - centres[i])
     keep = samples["valid"] & (per["weight"] > 0)
     out = {"row": np.arange(len(index)), "scene_seed": samples["scene_seed"], "source": samples["source"],
-           "label": samples["label"].astype(bool), "eval_prob": per["prob"], "target": target, "lever": lever}
+           "label": samples["label"].astype(bool), "eval_prob": per["prob"], "target": target, "lever": lever,
+           "fit_offset": fit_offset}
     return {k: np.asarray(v)[keep] for k, v in out.items()}
 
 
@@ -107,4 +128,28 @@ def table(columns: dict[str, np.ndarray], weights: Sequence[float] = (0.0, 0.5, 
         rows = passing & (arm >= lo) & (arm < hi)
         rate = f"{label[rows].mean():.3f}" if rows.any() else "–"
         lines.append(f"| {lo * 100:g}-{hi * 100:g} | {int(rows.sum())} | {rate} |")
+    return "\n".join(lines)
+
+
+def fit_table(columns: dict[str, np.ndarray], weights: Sequence[float] = (0.0, 0.5, 1.0, 2.0, 4.0),
+              confident: float = 0.85) -> str:
+    """Markdown: among Stage-1 samples scored above `confident` with a fit, the AUC of success against
+    failure for the fitted centre's offset (|offset| along each grasp axis, smaller = better) and for the
+    score itself; and per scene, the success of the top Stage-1 sample ranked by logit(eval_prob) - w *
+    |offset along x| (cm; x: the closing axis; no penalty without a fit). Weight 0 is E-RNet's top grasp."""
+    s1 = columns["source"] == source_index("stage1")
+    label, e, off = columns["label"][s1], columns["eval_prob"][s1].astype(np.float64), columns["fit_offset"][s1]
+    sure = (e > confident) & np.isfinite(off[:, 0])
+    aucs = [judgement.roc_auc(-np.abs(off[sure, a]), label[sure]) for a in range(3)]
+    cell = lambda v: "–" if v is None else f"{v:.3f}"  # noqa: E731
+    lines = [f"Stage-1 samples scored above {confident:g} with a fit ({int(sure.sum())}): AUC of success against "
+             "failure",
+             "", "| score | fit offset x (closing) | y (finger width) | z (approach) |", "|---:|---:|---:|---:|",
+             f"| {cell(judgement.roc_auc(e[sure], label[sure]))} | {' | '.join(cell(v) for v in aucs)} |", "",
+             "| weight (per cm of x offset) | top Stage-1 sample succeeds |", "|---:|---:|"]
+    p = np.clip(e, 1e-6, 1 - 1e-6)
+    penalty = 100 * np.nan_to_num(np.abs(off[:, 0]), nan=0.0)
+    for w in weights:
+        rate = judgement.top_success(np.log(p / (1 - p)) - w * penalty, label, columns["scene_seed"][s1])
+        lines.append(f"| {w:g} | {cell(rate)} |")
     return "\n".join(lines)
