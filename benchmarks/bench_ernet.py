@@ -45,7 +45,16 @@ CONFIGS = {
         ),
     ),
     "paper-swept": lambda: ERNetConfig.paper(hand_points=32),
-    # light-swept with 96-wide feature propagation and 256 / 128 heads (docs/stage2.md, "A wider network").
+    # light-swept with twice the centroids (64 / 16, first radius 1.5 cm), light's widths (docs/stage2.md,
+    # "Wider and finer networks").
+    "fine-swept": lambda: ERNetConfig.light(
+        hand_points=32,
+        backbone=BackboneConfig(
+            (SetAbstractionConfig(64, 0.015, 8, (16, 32)), SetAbstractionConfig(16, 0.04, 8, (32, 64))),
+            ((64,), (64, 64)), sampler="random",
+        ),
+    ),
+    # light-swept with 96-wide feature propagation and 256 / 128 heads (docs/stage2.md, "Wider and finer networks").
     "wide-swept": lambda: ERNetConfig.light(
         hand_points=32, eval_hidden=(256, 128), refine_hidden=(256, 128),
         backbone=BackboneConfig(LIGHT_BACKBONE.set_abstraction, ((96,), (96, 96)), sampler="random"),
