@@ -148,8 +148,8 @@ def fit_table(columns: dict[str, np.ndarray], weights: Sequence[float] = (0.0, 0
              f"| {cell(judgement.roc_auc(e[sure], label[sure]))} | {' | '.join(cell(v) for v in aucs)} |", "",
              "| weight (per cm of x offset) | top Stage-1 sample succeeds |", "|---:|---:|"]
     p = np.clip(e, 1e-6, 1 - 1e-6)
-    penalty = 100 * np.nan_to_num(np.abs(off[:, 0]), nan=0.0)
+    logit, penalty = np.log(p / (1 - p)), 100 * np.nan_to_num(np.abs(off[:, 0]), nan=0.0)
     for w in weights:
-        rate = judgement.top_success(np.log(p / (1 - p)) - w * penalty, label, columns["scene_seed"][s1])
+        rate = judgement.top_success(logit - w * penalty, label, columns["scene_seed"][s1])
         lines.append(f"| {w:g} | {cell(rate)} |")
     return "\n".join(lines)
