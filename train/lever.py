@@ -62,6 +62,7 @@ def lever_directory(directory: str | os.PathLike, model: str | os.PathLike | Non
         obs = camera_lib.observe(scene, config.camera, seed=int(samples["scene_seed"][rows[0]]))
         names = [scene.assets[k].name if scene.present[k] else None for k in range(scene.n_objects)]
         coms = scene.object_poses()[:, :3]
+        visible = [obs.points[obs.point_labels == k] for k in range(scene.n_objects)]  # each object's points
         poses = samples["pose"][rows].astype(np.float64)
         centres = closing_centre(poses, spec, xp=np)
         centroids = np.full((len(rows), 3), np.nan)
@@ -70,15 +71,14 @@ def lever_directory(directory: str | os.PathLike, model: str | os.PathLike | Non
             if not same:
                 continue
             k = target[rows[i]] = min(same, key=lambda k: np.linalg.norm(coms[k] - centre))
-            seen = obs.points[obs.point_labels == k]
-            if len(seen):
-                centroids[i] = seen.mean(0)
+            if len(visible[k]):
+                centroids[i] = visible[k].mean(0)
         lever[rows] = lever_arm(poses, centroids, spec, xp=np)
-        fitted = [k for k in np.unique(target[rows]) if k >= 0 and (obs.point_labels == k).sum() >= MIN_FIT_POINTS]
+        fitted = [k for k in np.unique(target[rows]) if k >= 0 and len(visible[k]) >= MIN_FIT_POINTS]
         if fitted:
             # One batch per scene, padded to the scene's object count so that every scene reuses one compile.
             limit = stage1.max_object_points
-            clouds = [pointcloud.downsample(obs.points[obs.point_labels == k], limit, 0) for k in fitted]
+            clouds = [pointcloud.downsample(visible[k], limit, 0) for k in fitted]
             clouds += [clouds[0]] * (scene.n_objects - len(clouds))
             batch, mask = pointcloud.pad_clouds(clouds, limit, n_points=limit)
             centre = np.asarray(ems.fit_superquadrics(batch, mask, stage1.ems, viewpoint).translation, np.float64)
