@@ -7,7 +7,7 @@ each filter beyond the paper's only where the benchmark shows it helps).
                                          [--reuse RUN_WITHOUT_FALLBACK]
 
 Each variant is `supergrasp` (or --method) with one change to today's planner (`VARIANTS`: a
-`FilterConfig` change, the second plan's filter, a `MatchConfig` change, or a `PlannerConfig` one), run on the same scenes (same seed) through
+`FilterConfig` change, the second plan's filter, a `MatchConfig`, `Stage1Config` or `PlannerConfig` change), run on the same scenes (same seed) through
 `eval.benchmark.run_benchmark` into its own folder OUT/<variant> (resumable: rerun the same command
 after an interrupt). Prints, per variant: GSR / TSR / GA, the unfinished scenes by why they ended
 (Stage 1 kept no candidate; Stage 2 scored every candidate <= the threshold; the memory of failed grasps
@@ -28,6 +28,7 @@ from eval.benchmark import run_benchmark
 from eval.methods import make_method
 from sgjax.planner import PlannerConfig
 from sgjax.stage1.filters import FilterConfig
+from sgjax.stage1.fit_grasps import FitGraspConfig
 from sgjax.stage1.neighbours import NeighbourFitConfig
 
 # The filters beyond the paper's (i)-(iii) and the table (v), each switched to the paper's reading (or,
@@ -64,6 +65,10 @@ VARIANTS = {
     # Not a filter: on the chosen object, the passing candidate with the shortest lever arm preferred
     # (`PlannerConfig.lever_weight`; 2 per metre was the best of 1-4 on the labelled mix-v5 + v6).
     "lever": {"planner": {"lever_weight": 2.0}},
+    # Not a filter: the second plan also offers top-down grasps on each object's fit
+    # (`PlannerConfig.fallback_fit_grasps`, `sgjax.stage1.fit_grasps`); "-both": the first plan too.
+    "fit-grasps": {"planner": {"fallback_fit_grasps": FitGraspConfig()}},
+    "fit-grasps-both": {"planner": {"fallback_fit_grasps": FitGraspConfig()}, "stage1": {"fit_grasps": FitGraspConfig()}},
 }
 
 
@@ -77,13 +82,14 @@ def variant_config(name: str):
     matching = dataclasses.replace(base.stage1.match, **changes.pop("match", {}))
     fallback_match = changes.pop("fallback_match", None)
     planner = changes.pop("planner", {})
+    stage1 = changes.pop("stage1", {})
     fallback_match = None if fallback_match is None else dataclasses.replace(base.stage1.match, **fallback_match)
     if fallback == "default":
         fallback_filter = base.fallback_filter
     else:
         fallback_filter = None if fallback is None else dataclasses.replace(FilterConfig(), **fallback)
     filt = dataclasses.replace(FilterConfig(), **changes)
-    return dataclasses.replace(base, stage1=dataclasses.replace(base.stage1, filter=filt, match=matching),
+    return dataclasses.replace(base, stage1=dataclasses.replace(base.stage1, filter=filt, match=matching, **stage1),
                                fallback_filter=fallback_filter, fallback_match=fallback_match, **planner)
 
 

@@ -2,7 +2,7 @@
 (run by hand; prints a markdown table).
 
     python benchmarks/tapered_objects.py [--placements 8] [--top 8] [--small-db] [--model RUN_DIR]
-                                         [--objects tapered] [--seed 0] [--json OUT]
+                                         [--objects tapered|flat] [--fit-grasps] [--seed 0] [--json OUT]
 
 A superquadric cannot taper, so a frustum's single-view fit is a cylinder or a box and its matched
 primitives are rarely frusta (docs/limitations.md). What matters to a user is whether the grasps
@@ -19,6 +19,10 @@ plans on it; then in simulation (`envs.trial.run_trials`, the benchmark's lift /
 
 Rows per object and placement kind, then per shape class (cylinder / frustum / cup). The same seed gives
 the same placements and outcomes.
+
+`--objects flat` (a lens, a pebble, a puck, a tile; `envs.objects`) places each flat on its largest face
+("standing": its thin z axis up). `--fit-grasps`: the planner's second plan also offers top-down grasps on
+the fit (`PlannerConfig.fallback_fit_grasps`).
 """
 
 from __future__ import annotations
@@ -39,14 +43,26 @@ from eval.report import markdown_table  # noqa: E402
 
 
 def kinds_for(name: str) -> tuple[str, ...]:
-    # Cylinders and the cup have no narrow end to stand on (an upside-down cup is a frustum shell).
+    # Cylinders and the cup have no narrow end to stand on (an upside-down cup is a frustum shell); flat
+    # objects rest on their largest face (z up).
+    if name.startswith("flat/"):
+        return ("standing",)
     return single_object.KINDS if single_object.shape_class(name) == "frustum" else ("standing", "lying")
 
 
 def run(args) -> list[dict]:
     from eval.supergrasp import PlannerMethod
 
-    method = PlannerMethod("supergrasp", True, model=args.model, small_db=args.small_db)
+    config = None
+    if args.fit_grasps:
+        import dataclasses
+
+        from envs.scene import stage2_scene_cloud
+        from sgjax.planner import PlannerConfig
+        from sgjax.stage1.fit_grasps import FitGraspConfig
+
+        config = dataclasses.replace(PlannerConfig(scene_cloud=stage2_scene_cloud()), fallback_fit_grasps=FitGraspConfig())
+    method = PlannerMethod("supergrasp", True, model=args.model, small_db=args.small_db, config=config)
     rng = np.random.default_rng(args.seed)
     rows = []
     for asset in load_object_set(args.objects):
@@ -103,6 +119,7 @@ def main() -> None:
     parser.add_argument("--objects", default="tapered")
     parser.add_argument("--model", default=None, help="an E-RNet run directory (default: the shipped one)")
     parser.add_argument("--small-db", action="store_true")
+    parser.add_argument("--fit-grasps", action="store_true", help="PlannerConfig.fallback_fit_grasps = FitGraspConfig()")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", default=None, help="also write the rows here")
     args = parser.parse_args()

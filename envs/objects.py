@@ -20,6 +20,9 @@ Object sets (`load_object_set(name)`):
   * "tapered": 2 cylinders, 2 frusta and an open cup of the same sizes (solids of revolution), for
     checking that single views of tapered objects get grasps as good as cylinders' (a superquadric
     cannot taper: `benchmarks/tapered_objects.py`, tests/test_tapered.py). Never labelled.
+  * "flat": a lens, a pebble, a puck and a tile, 2-2.5 cm tall, resting on their largest face, for
+    checking that thin lying objects get grasps (`benchmarks/tapered_objects.py --objects flat`,
+    tests/test_flat.py). Never labelled.
   * any folder of .obj/.stl/.ply meshes in metres (searched recursively): source "user", no size filter.
 A mesh that cannot be prepared is reported and recorded in `cache_dir("objects", "sets", SET)/failures.json`.
 A default set (`OBJECT_SETS`) never shrinks silently: `load_object_set` raises `ObjectSetError` naming every
@@ -55,11 +58,12 @@ from envs.meshprep import MESH_EXTENSIONS, MeshPrepError, PrepConfig
 from sgjax.utils.cache import cache_dir
 from sgjax.utils.files import atomic_write, atomic_write_text
 from sgjax.geometry.gripper import GripperSpec
+from sgjax.geometry.superquadric import Superquadric, to_mesh
 
 MAX_HULL_VERTICES = PrepConfig.max_hull_vertices  # MJX collides meshes as hulls; keep them small
 ASSET_FILE = "asset.json"
 OBJECT_SETS = ("tiny", "ycb", "ycb-seen", "ycb-unseen", "procedural", "procedural-unseen", "seen", "unseen", "all",
-               "tapered")
+               "tapered", "flat")
 
 # Size rule for the default sets (gripper opening from GripperSpec): the gripper must close across the
 # object with `GRASP_MARGIN` to spare where it lies. Objects rest mostly on their largest faces, so that
@@ -99,6 +103,7 @@ PROCEDURAL_UNSEEN_SEED = 1
 REST_WIDTH_VERSION = 1  # bump when meshprep.rest_width changes
 TINY_VERSION = 2  # bump when the tiny shapes change
 TAPERED_VERSION = 1  # bump when the tapered shapes change
+FLAT_VERSION = 1  # bump when the flat shapes change
 
 
 @dataclasses.dataclass(frozen=True)
@@ -596,6 +601,27 @@ def tapered_sources() -> list[MeshSource]:
     return _generated_sources(folder, names, _tapered_meshes, "tapered", "tapered")
 
 
+def _flat_meshes() -> list[tuple[str, trimesh.Trimesh]]:
+    # Flat objects that rest on their largest face, 2-2.5 cm tall, their thin axis along z: a lens with a
+    # pinched rim (eps1 > 1: the widest section halfway up, a sharp edge), an ellipsoidal pebble, a puck
+    # (a short cylinder) and a tile (a flat rounded box). Across their short side an 8 cm gripper closes
+    # only low down, between the table and the widest section (`sgjax.stage1.fit_grasps`).
+    shape = lambda scale, eps: to_mesh(Superquadric.create(scale, eps), resolution=10)
+    return [
+        ("lens_25x60x80", shape((0.040, 0.030, 0.0125), (1.4, 1.0))),
+        ("lens_24x56x94", shape((0.047, 0.028, 0.012), (1.4, 1.4))),
+        ("pebble_24x50x70", shape((0.035, 0.025, 0.012), (1.0, 1.0))),
+        ("puck_20x60", shape((0.030, 0.030, 0.010), (0.1, 1.0))),
+        ("tile_18x50x90", shape((0.045, 0.025, 0.009), (0.3, 0.3))),
+    ]
+
+
+def flat_sources() -> list[MeshSource]:
+    folder = cache_dir("objects", "flat", f"v{FLAT_VERSION}")
+    names = [name for name, _ in _flat_meshes()]
+    return _generated_sources(folder, names, _flat_meshes, "flat", "flat")
+
+
 def user_sources(folder: str | os.PathLike) -> list[MeshSource]:
     """Every .obj/.stl/.ply under `folder` (recursive, sorted), named "<folder name>/<relative path>"."""
     folder = Path(folder).expanduser()
@@ -618,6 +644,8 @@ def object_sources(name: str, spec: GripperSpec | None = None) -> list[MeshSourc
         return tiny_sources()
     if name == "tapered":
         return tapered_sources()
+    if name == "flat":
+        return flat_sources()
     if name in ("ycb", "ycb-seen", "ycb-unseen", "seen", "unseen", "all"):
         seen, unseen = split_seen_unseen(ycb_graspable(spec))
         # Built on demand: the procedural meshes cost ~2.5 s each the first time (their rest widths).

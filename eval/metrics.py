@@ -173,3 +173,41 @@ def failure_breakdown(logs: Iterable[Mapping]) -> dict[str, collections.Counter]
             out["unfinished"][why] += 1
             out["left"][why] += int(log["remaining"])
     return out
+
+
+@dataclasses.dataclass
+class ObjectCounts:
+    """One object's part in a set of scenes: in how many scenes' tasks it was (`scenes`, counted once per
+    instance), how many times it was grasped, and its failed grasps by outcome."""
+
+    scenes: int = 0
+    grasped: int = 0
+    failed: collections.Counter = dataclasses.field(default_factory=collections.Counter)
+
+    @property
+    def not_grasped(self) -> int:
+        """Instances left at the end, or that fell off the table on the way (TSR counts neither)."""
+        return self.scenes - self.grasped
+
+    @property
+    def attempts(self) -> int:
+        return self.grasped + sum(self.failed.values())
+
+
+def object_breakdown(logs: Iterable[Mapping]) -> dict[str, ObjectCounts]:
+    """Per object name (the log's "object_names", the task's objects after the initial settle, and each
+    attempt's "target_name"): `ObjectCounts`. Attempts that touched no object count for none. Which
+    objects a method leaves, and which it fails on: the cell's GSR and TSR by object."""
+    out: dict[str, ObjectCounts] = collections.defaultdict(ObjectCounts)
+    for log in logs:
+        for name in log.get("object_names") or []:
+            out[name].scenes += 1
+        for attempt in log["attempts"]:
+            name = attempt.get("target_name")
+            if name is None:
+                continue
+            if attempt["success"]:
+                out[name].grasped += 1
+            else:
+                out[name].failed[attempt["outcome"]] += 1
+    return dict(out)

@@ -230,6 +230,34 @@ def failures_markdown(logs: Iterable[Mapping]) -> str:
     return "\n".join(lines)
 
 
+def object_outcomes_markdown(logs: Iterable[Mapping], top: int = 12) -> str:
+    """Per setting, the `top` objects most often not grasped (then most failed on) over its cells, with
+    per method (seeds pooled) "not grasped / in scenes, failed grasps" (`metrics.object_breakdown`);
+    objects every method grasped every time without a failure are left out."""
+    by_cell: dict[tuple[str, str], list[Mapping]] = defaultdict(list)
+    for log in logs:
+        by_cell[(log["setting"], log["method"])].append(log)
+    sections = []
+    for setting in _setting_order(k[0] for k in by_cell):
+        methods = _method_order(m for s, m in by_cell if s == setting)
+        counts = {m: metrics.object_breakdown(by_cell[(setting, m)]) for m in methods}
+        names = {n for c in counts.values() for n, o in c.items() if o.not_grasped or o.failed}
+        total = lambda n, key: sum(getattr(c[n], key) if key == "not_grasped" else c[n].attempts - c[n].grasped
+                                   for c in counts.values() if n in c)
+        order = sorted(names, key=lambda n: (-total(n, "not_grasped"), -total(n, "failed"), n))
+        body = []
+        for name in order[:top]:
+            cells = []
+            for m in methods:
+                o = counts[m].get(name)
+                cells.append("–" if o is None else f"{o.not_grasped} / {o.scenes}, {sum(o.failed.values())}")
+            body.append([name, *cells])
+        more = f" ({len(order) - top} more)" if len(order) > top else ""
+        head = f"{setting}{more}: not grasped / in scenes, failed grasps"
+        sections.append(f"{head}\n\n" + (markdown_table(["object", *methods], body) if body else "every object grasped, no failure"))
+    return "\n\n".join(sections)
+
+
 def harness_markdown(logs: Iterable[Mapping]) -> str:
     """Per method: the harness's own seconds per attempt (observe, trial, re-settle) beside the plan
     call's, and the wall seconds per scene (`metrics.harness_summary`)."""
@@ -302,6 +330,9 @@ def write_tables(out: str | os.PathLike, machine: str = "") -> dict[str, Path]:
         "Failed grasps by the phase that failed them, and the scenes that ended with objects left, by "
         "why (the attempt cap, or the method's reason for finding no grasp, numbers as N).\n\n"
         f"{failures_markdown(logs)}\n\n"
+        "Objects by how often they were not grasped (left at the end, or fallen off the table) and failed "
+        "on, seeds pooled:\n\n"
+        f"{object_outcomes_markdown(logs)}\n\n"
         "## What a run costs\n\n"
         "Mean wall seconds per attempt of the harness's own steps (rendering the observation, the grasp "
         "trial, re-settling the scene after it; trial and re-settle over simulated attempts) beside the "

@@ -19,7 +19,7 @@ from envs import trial as trial_lib
 # standing: the asset's z axis up; narrow-end-down: upside down (a frustum on its small face);
 # lying: the z axis horizontal (the object rests on its side).
 KINDS = ("standing", "narrow-end-down", "lying")
-SHAPE_CLASSES = ("cylinder", "frustum", "cup")
+SHAPE_CLASSES = ("cylinder", "frustum", "cup", "lens", "pebble", "puck", "tile")
 
 
 def shape_class(name: str) -> str:

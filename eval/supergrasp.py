@@ -72,6 +72,12 @@ class PlannerMethod:
             info["fallback"] = True
         if plan.reused:
             info["reused"] = int(plan.reused)
+        if plan.candidate_index is not None and plan.scores:
+            # A grasp on the fitted superquadric itself (`sgjax.stage1.fit_grasps`), not a transferred one.
+            row = plan.candidate_index
+            cands = plan.candidates[int(plan.scores["object"][row])]
+            if cands.primitive_id[int(plan.scores["object_candidate"][row])] < 0:
+                info["fit_grasp"] = True
         if plan.pose is None:
             return Decision(None, 0.0, 0.0, plan.reason or "no grasp", timing, info)
         return Decision(np.asarray(plan.pose, np.float64), float(plan.width), float(plan.score), "", timing, info)

@@ -66,6 +66,7 @@ from sgjax.stage1.database import PrimitiveDB
 from sgjax.utils import exported
 from sgjax.utils.cache import enable_compilation_cache
 from sgjax.stage1.filters import FilterConfig
+from sgjax.stage1.fit_grasps import FitGraspConfig
 from sgjax.stage1.matching import MatchConfig
 from sgjax.stage1.memory import Stage1Memory
 from sgjax.stage1 import neighbours
@@ -140,6 +141,10 @@ class PlannerConfig:
         E.g. `MatchConfig(relabel_extra=5)`: when nothing was found, also match the fitted
         superquadric's other axis labellings, for flat objects whose single-view fit names its axes so
         that the database's matching shape ranks low (docs/benchmark.md). Used only with a fallback_filter.
+    fallback_fit_grasps: the second plan also offers top-down grasps on each object's fitted superquadric
+        (`sgjax.stage1.fit_grasps`: across its two horizontal axes, centred on it, fingertips below its
+        centre), filtered and judged like the transferred ones. None: the transferred grasps only.
+        Used only with a fallback_filter.
     neighbour_fits: after Stage 1, remove every candidate whose hand (fingers and palm, swept back over
         the approach) meets another object's fitted superquadric grown by its margin
         (`sgjax.stage1.neighbours`: the sides of neighbours the camera did not see, which filter (iv)
@@ -178,6 +183,7 @@ class PlannerConfig:
     avoid_angle_deg: float = gripper.AVOID_ANGLE_DEG
     fallback_filter: FilterConfig | None = FALLBACK_FILTER
     fallback_match: MatchConfig | None = None
+    fallback_fit_grasps: FitGraspConfig | None = None
     reuse_tolerance: float = 0.0005
     neighbour_fits: NeighbourFitConfig | None = NeighbourFitConfig()
     lever_weight: float = 0.0
@@ -209,6 +215,8 @@ class PlannerConfig:
             raise ValueError(f"lever_weight must be a finite number >= 0 (per metre), got {self.lever_weight}")
         if self.fallback_match is not None and self.fallback_filter is None:
             raise ValueError("fallback_match is the second plan's matching: it needs a fallback_filter (the second plan)")
+        if self.fallback_fit_grasps is not None and self.fallback_filter is None:
+            raise ValueError("fallback_fit_grasps are the second plan's: they need a fallback_filter (the second plan)")
         check_thresholds(self)
 
     @property
@@ -655,7 +663,8 @@ class Planner:
         cfg = self.config
         if cfg.fallback_filter is None:
             return None
-        stage_cfg = dataclasses.replace(cfg.stage1, filter=cfg.fallback_filter, match=cfg.fallback_match or cfg.stage1.match)
+        stage_cfg = dataclasses.replace(cfg.stage1, filter=cfg.fallback_filter, match=cfg.fallback_match or cfg.stage1.match,
+                                        fit_grasps=cfg.fallback_fit_grasps)
         if stage_cfg not in self._fallback_stages:
             self._fallback_stages[stage_cfg] = Stage1(self.stage1.db, stage_cfg, share=self.stage1)
         return self._fallback_stages[stage_cfg]

@@ -351,11 +351,14 @@ def _cmd_candidates(args: argparse.Namespace) -> int:
         if cands.reason:
             print(f"  no candidate: {cands.reason}")
         for i in range(min(args.top, len(cands))):
-            p = db.primitive(int(cands.primitive_id[i]))
             pos = np.round(cands.poses[i, :3, 3], 4).tolist()
             app = np.round(cands.poses[i, :3, 2], 3).tolist()
-            print(f"  #{i}: width {cands.widths[i]:.4f} m  position {pos}  approach {app}  "
-                  f"from {p.family} {np.round(p.dims, 3).tolist()} (s = {cands.match_score[i]:.3f})")
+            if cands.primitive_id[i] < 0:  # a grasp on the fit itself (Stage1Config.fit_grasps)
+                source = "the fitted superquadric"
+            else:
+                p = db.primitive(int(cands.primitive_id[i]))
+                source = f"{p.family} {np.round(p.dims, 3).tolist()} (s = {cands.match_score[i]:.3f})"
+            print(f"  #{i}: width {cands.widths[i]:.4f} m  position {pos}  approach {app}  from {source}")
     if args.png:
         from sgjax.draw import draw_grasps
 

@@ -180,6 +180,23 @@ def test_failures_are_counted_by_phase_and_by_why_scenes_ended():
             "N <= N (2, 6); attempt cap (1, 3); no grasp: no candidates (1, 2) |") in table
 
 
+def test_objects_not_grasped_and_failed_on_are_counted_by_name():
+    a = log(3, "fsfs", method="gpd", setting="seen-10", seed=0, object_names=["box", "lens", "lens"])
+    b = log(2, "sf", method="gpd", setting="seen-10", seed=1, object_names=["box", "lens"])
+    for attempt, (name, outcome) in zip(a["attempts"] + b["attempts"],
+                                        [("lens", "dropped_lift"), ("box", "success"), (None, "no_object"),
+                                         ("lens", "success"), ("box", "success"), ("lens", "collision_approach")]):
+        attempt.update(target_name=name, outcome=outcome)
+    counts = metrics.object_breakdown([a, b])
+    assert (counts["box"].scenes, counts["box"].grasped, counts["box"].not_grasped, counts["box"].attempts) == (2, 2, 0, 2)
+    lens = counts["lens"]
+    assert (lens.scenes, lens.grasped, lens.not_grasped, lens.attempts) == (3, 1, 2, 3)
+    assert lens.failed == {"dropped_lift": 1, "collision_approach": 1}
+    table = report.object_outcomes_markdown([a, b, {**b, "method": "oracle-topdown", "attempts": b["attempts"][:1]}])
+    assert "| object | gpd | oracle-topdown |" in table  # methods in the report's order
+    assert "| lens | 2 / 3, 2 | 1 / 1, 0 |" in table and "box" not in table  # never missed nor failed on
+
+
 def test_tables_follow_table_i_and_table_iii():
     logs = [
         log(10, "ssff", method="gpd", setting="seen-10", seed=0),

@@ -37,6 +37,7 @@ from sgjax.stage1.filters import (
     scene_filter,
 )
 from sgjax.stage1.ems import EMSConfig, FitResult, _fit_one
+from sgjax.stage1.fit_grasps import FitGraspConfig, fit_top_down_grasps
 from sgjax.geometry.gripper import GripperSpec, recentre_and_widen, to_gripper_frame
 from sgjax.utils import exported
 from sgjax.utils.cache import enable_compilation_cache
@@ -77,6 +78,10 @@ class Stage1Config:
     # max_lift to clear it by filter.support_clearance (`sgjax.stage1.filters.lift_to_plane`) rather
     # than removed by filter (v): on thin lying objects these are the grasps that close low enough.
     max_lift: float = 0.01
+    # Top-down grasps on the fit itself, ahead of the transferred ones (`sgjax.stage1.fit_grasps`;
+    # primitive_id -1). None: the paper's candidates only. The planner's second plan sets it
+    # (`PlannerConfig.fallback_fit_grasps`).
+    fit_grasps: FitGraspConfig | None = None
 
 
 @dataclasses.dataclass
@@ -85,7 +90,9 @@ class Candidates:
 
     poses [M, 4, 4] (gripper frame of `sgjax.geometry.gripper` -> world), widths [M];
     provenance: primitive_id [M] (row in the database), template_id [M] (index among that
-    primitive's grasps), match_rank [M] (0..K2-1), match_score [M] (the paper's s);
+    primitive's grasps), match_rank [M] (0..K2-1), match_score [M] (the paper's s); a grasp on the fit
+    itself (`Stage1Config.fit_grasps`) has primitive_id -1, match_rank -1, match_score 0 and its index
+    among the fit's grasps as template_id;
     points_between [M]: target points between the fingers. `superquadric` is the fitted FitResult,
     `counts` says how many candidates each filter removed, `reason` why the set is empty (else None).
     """
@@ -190,12 +197,19 @@ def _pipeline(obj, obj_mask, scene, scene_mask, viewpoint, plane, scale, neighbo
     poses, widths, mask = transfer_grasps(fit.superquadric, result, db)  # [B, K2, G, ...]
     b, k2, g = mask.shape
     poses, widths, mask = poses.reshape(b, k2 * g, 4, 4), widths.reshape(b, k2 * g), mask.reshape(b, k2 * g)
+    f = 0
+    if cfg.fit_grasps is not None:  # the fit's own grasps first, so that max_candidates never drops them
+        own = jax.vmap(lambda sq, pl: fit_top_down_grasps(sq, pl, cfg.spec, cfg.fit_grasps))(fit.superquadric, plane)
+        f = cfg.fit_grasps.count
+        poses, widths, mask = (jnp.concatenate([a, c], 1) for a, c in zip(own, (poses, widths, mask)))
     mask &= fit.valid[:, None]
     # Compact the valid slots to the front (stable: match order is kept), then keep max_candidates.
     order = jnp.argsort(~mask, axis=1, stable=True)[:, : cfg.max_candidates]
     take = lambda x: jnp.take_along_axis(x, order.reshape(order.shape + (1,) * (x.ndim - 2)), 1)
     poses, widths, valid = take(poses), take(widths), take(mask)
-    rank = order // g
+    own = order < f  # a grasp on the fit: match rank and primitive -1
+    rank = jnp.where(own, -1, (order - f) // g)
+    template = jnp.where(own, order, (order - f) % g)
     if cfg.max_lift > 0.0:
         lift = lambda p, w, pl: lift_to_plane(p, w, pl, cfg.spec, cfg.filter.support_clearance, cfg.max_lift)[0]
         poses = jax.vmap(lift)(poses, widths, plane)
@@ -216,6 +230,10 @@ def _pipeline(obj, obj_mask, scene, scene_mask, viewpoint, plane, scale, neighbo
         return map_chunks(part, cfg.filter.chunk, p, w, v)
 
     poses, widths, filt = jax.vmap(one)(poses, widths, valid, obj, obj_mask, normals, plane, scale, fit.superquadric)
+    if cfg.fit_grasps is not None and not cfg.fit_grasps.normal_test:  # the fit's grasps skip (iii)
+        exempt = own & filt.normal_angle
+        filt = dataclasses.replace(filt, normal_angle=filt.normal_angle & ~own,
+                                   keep=filt.keep | (exempt & ~filt.collision_object & ~filt.too_few_points & ~filt.below_support))
     if has_scene:  # (iv) last, on the candidates that passed the rest
         # Object by object (`lax.map`, not vmap), so that its chunks of slots no candidate reached are skipped.
         def with_scene(args):
@@ -230,10 +248,10 @@ def _pipeline(obj, obj_mask, scene, scene_mask, viewpoint, plane, scale, neighbo
         "valid": valid,
         "total_valid": jnp.sum(mask, 1),
         "filter": filt,
-        "primitive_id": jnp.take_along_axis(result.index, rank, 1),
-        "template_id": order % g,
+        "primitive_id": jnp.where(own, -1, jnp.take_along_axis(result.index, jnp.maximum(rank, 0), 1)),
+        "template_id": template,
         "match_rank": rank,
-        "match_score": jnp.take_along_axis(result.score, rank, 1),
+        "match_score": jnp.where(own, 0.0, jnp.take_along_axis(result.score, jnp.maximum(rank, 0), 1)),
     }
 
 
