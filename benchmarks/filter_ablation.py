@@ -65,10 +65,10 @@ VARIANTS = {
     # Not a filter: on the chosen object, the passing candidate with the shortest lever arm preferred
     # (`PlannerConfig.lever_weight`; 2 per metre was the best of 1-4 on the labelled mix-v5 + v6).
     "lever": {"planner": {"lever_weight": 2.0}},
-    # Not a filter: the second plan also offers top-down grasps on each object's fit
-    # (`PlannerConfig.fallback_fit_grasps`, `sgjax.stage1.fit_grasps`); "-both": the first plan too.
-    "fit-grasps": {"planner": {"fallback_fit_grasps": FitGraspConfig()}},
-    "fit-grasps-both": {"planner": {"fallback_fit_grasps": FitGraspConfig()}, "stage1": {"fit_grasps": FitGraspConfig()}},
+    # Not a filter: Stage 1's top-down grasps on each object's fit (`PlannerConfig.fit_grasps`,
+    # `sgjax.stage1.fit_grasps`; default: in both plans) off, or only in the second plan.
+    "no-fit-grasps": {"planner": {"fit_grasps": None}},
+    "fit-grasps-second": {"planner": {"fit_grasps": FitGraspConfig(first_plan=False)}},
 }
 
 

@@ -2,7 +2,7 @@
 (run by hand; prints a markdown table).
 
     python benchmarks/tapered_objects.py [--placements 8] [--top 8] [--small-db] [--model RUN_DIR]
-                                         [--objects tapered|flat] [--fit-grasps] [--seed 0] [--json OUT]
+                                         [--objects tapered|flat] [--no-fit-grasps] [--seed 0] [--json OUT]
 
 A superquadric cannot taper, so a frustum's single-view fit is a cylinder or a box and its matched
 primitives are rarely frusta (docs/limitations.md). What matters to a user is whether the grasps
@@ -21,8 +21,8 @@ Rows per object and placement kind, then per shape class (cylinder / frustum / c
 the same placements and outcomes.
 
 `--objects flat` (a lens, a pebble, a puck, a tile; `envs.objects`) places each flat on its largest face
-("standing": its thin z axis up). `--fit-grasps`: the planner's second plan also offers top-down grasps on
-the fit (`PlannerConfig.fallback_fit_grasps`).
+("standing": its thin z axis up). `--no-fit-grasps`: the planner without its top-down grasps on the fit
+(`PlannerConfig.fit_grasps = None`, the paper's candidates).
 """
 
 from __future__ import annotations
@@ -54,14 +54,11 @@ def run(args) -> list[dict]:
     from eval.supergrasp import PlannerMethod
 
     config = None
-    if args.fit_grasps:
-        import dataclasses
-
+    if args.no_fit_grasps:
         from envs.scene import stage2_scene_cloud
         from sgjax.planner import PlannerConfig
-        from sgjax.stage1.fit_grasps import FitGraspConfig
 
-        config = dataclasses.replace(PlannerConfig(scene_cloud=stage2_scene_cloud()), fallback_fit_grasps=FitGraspConfig())
+        config = PlannerConfig(scene_cloud=stage2_scene_cloud(), fit_grasps=None)
     method = PlannerMethod("supergrasp", True, model=args.model, small_db=args.small_db, config=config)
     rng = np.random.default_rng(args.seed)
     rows = []
@@ -119,7 +116,7 @@ def main() -> None:
     parser.add_argument("--objects", default="tapered")
     parser.add_argument("--model", default=None, help="an E-RNet run directory (default: the shipped one)")
     parser.add_argument("--small-db", action="store_true")
-    parser.add_argument("--fit-grasps", action="store_true", help="PlannerConfig.fallback_fit_grasps = FitGraspConfig()")
+    parser.add_argument("--no-fit-grasps", action="store_true", help="PlannerConfig.fit_grasps = None (the paper's candidates)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", default=None, help="also write the rows here")
     args = parser.parse_args()

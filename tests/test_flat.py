@@ -1,9 +1,9 @@
 """Flat objects lying on the table get grasps on their fitted superquadric that hold them in simulation
-(`sgjax.stage1.fit_grasps`, the planner's second plan: `PlannerConfig.fallback_fit_grasps`).
+(`sgjax.stage1.fit_grasps`, `PlannerConfig.fit_grasps`).
 
-Each object of the "flat" set rests alone on its largest face, seen by the benchmark camera; Stage 1 with
-the second plan's filter and the fit's grasps runs on the view, and every fit grasp it keeps is executed
-in the benchmark's trial (lift, reorient, 1 N). `benchmarks/tapered_objects.py --objects flat` measures
+Each object of the "flat" set rests alone on its largest face, seen by the benchmark camera; Stage 1 as
+the planner's second plan runs it (its looser filter, the fit's grasps) runs on the view, and every fit
+grasp it keeps is executed in the benchmark's trial (lift, reorient, 1 N). `benchmarks/tapered_objects.py --objects flat` measures
 the planner's choices at full size.
 """
 

@@ -10,8 +10,9 @@ below the widest section of a rounded or pinched object, where a squeeze presses
 instead of pushing it out of the fingers. They go through the same width adaptation and coarse filters
 as the transferred grasps, and E-RNet judges them.
 
-Used by the planner's second plan only (`PlannerConfig.fallback_fit_grasps`): for the objects the first
-plan found nothing for. Pure JAX, fixed shapes; nothing raises inside jit.
+The planner offers them in both its plans by default (`PlannerConfig.fit_grasps`); Stage 1 alone does
+not (`Stage1Config.fit_grasps` None: the paper's candidates). Pure JAX, fixed shapes; nothing raises
+inside jit.
 """
 
 from __future__ import annotations
@@ -42,6 +43,8 @@ class FitGraspConfig:
         rounded or pinched object's widest section, where the observed normals tilt away from the
         closing axis (on a lens-like object lying flat the test removes every grasp that holds it).
         The other tests apply.
+    first_plan: for the planner (`sgjax.planner.PlannerConfig.fit_grasps`): in its first plan too, or only
+        in its second (the plan it makes when the first finds nothing). Stage 1 itself ignores it.
     """
 
     yaws_deg: tuple[float, ...] = (-15.0, 0.0, 15.0)
@@ -50,6 +53,7 @@ class FitGraspConfig:
     palm_clearance: float = 0.005
     min_margin: float = 0.004
     normal_test: bool = False
+    first_plan: bool = True
 
     def __post_init__(self):
         object.__setattr__(self, "yaws_deg", tuple(float(v) for v in self.yaws_deg))

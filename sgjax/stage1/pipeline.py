@@ -79,8 +79,7 @@ class Stage1Config:
     # than removed by filter (v): on thin lying objects these are the grasps that close low enough.
     max_lift: float = 0.01
     # Top-down grasps on the fit itself, ahead of the transferred ones (`sgjax.stage1.fit_grasps`;
-    # primitive_id -1). None: the paper's candidates only. The planner's second plan sets it
-    # (`PlannerConfig.fallback_fit_grasps`).
+    # primitive_id -1). None: the paper's candidates only. The planner sets it (`PlannerConfig.fit_grasps`).
     fit_grasps: FitGraspConfig | None = None
 
 
