@@ -94,7 +94,9 @@ def fit_top_down_grasps(sq: Superquadric, plane: jax.Array, spec: GripperSpec,
     vertical = jnp.argmax(cosines)
     # The fit's half-extent along a direction: the support function of the superellipse with the fit's
     # semi-axes and its cross-section exponent eps2 (dual norm q = 2 / (2 - eps2): a box's sum at
-    # eps2 -> 0, an ellipsoid's Euclidean norm at 1), exact along the fit's own axes.
+    # eps2 -> 0, an ellipsoid's Euclidean norm at 1), exact along the fit's own axes. eps2 shapes the
+    # section across the fit's z axis; for a fit lying on its side it stands in for the vertical
+    # section's eps1 (only the widths of the yawed grasps use it, and the cloud adapts them after).
     q = 2.0 / (2.0 - jnp.clip(sq.epsilon[1], 0.1, 1.9))
     extent = lambda d: jnp.sum(jnp.abs(sq.scale * (axes.T @ d)) ** q) ** (1.0 / q)
     centre_height = jnp.dot(up, sq.translation) + offset
