@@ -20,7 +20,7 @@ plans on it; then in simulation (`envs.trial.run_trials`, the benchmark's lift /
 Rows per object and placement kind, then per shape class (cylinder / frustum / cup). The same seed gives
 the same placements and outcomes.
 
-`--objects flat` (a lens, a pebble, a puck, a tile; `envs.objects`) places each flat on its largest face
+`--objects flat` (two lenses, a pebble, a puck, a tile; `envs.objects`) places each flat on its largest face
 ("standing": its thin z axis up). `--no-fit-grasps`: the planner without its top-down grasps on the fit
 (`PlannerConfig.fit_grasps = None`, the paper's candidates).
 """

@@ -20,7 +20,7 @@ Object sets (`load_object_set(name)`):
   * "tapered": 2 cylinders, 2 frusta and an open cup of the same sizes (solids of revolution), for
     checking that single views of tapered objects get grasps as good as cylinders' (a superquadric
     cannot taper: `benchmarks/tapered_objects.py`, tests/test_tapered.py). Never labelled.
-  * "flat": a lens, a pebble, a puck and a tile, 2-2.5 cm tall, resting on their largest face, for
+  * "flat": two lenses, a pebble, a puck and a tile, 1.8-2.5 cm tall, resting on their largest face, for
     checking that thin lying objects get grasps (`benchmarks/tapered_objects.py --objects flat`,
     tests/test_flat.py). Never labelled.
   * any folder of .obj/.stl/.ply meshes in metres (searched recursively): source "user", no size filter.
@@ -602,8 +602,9 @@ def tapered_sources() -> list[MeshSource]:
 
 
 def _flat_meshes() -> list[tuple[str, trimesh.Trimesh]]:
-    # Flat objects that rest on their largest face, 2-2.5 cm tall, their thin axis along z: a lens with a
-    # pinched rim (eps1 > 1: the widest section halfway up, a sharp edge), an ellipsoidal pebble, a puck
+    # Flat objects that rest on their largest face, 1.8-2.5 cm tall, their thin axis along z: lenses with a
+    # pinched rim (eps1 > 1: the widest section halfway up, a sharp edge; one with a pinched outline too,
+    # eps2 > 1), an ellipsoidal pebble, a puck
     # (a short cylinder) and a tile (a flat rounded box). Across their short side an 8 cm gripper closes
     # only low down, between the table and the widest section (`sgjax.stage1.fit_grasps`).
     shape = lambda scale, eps: to_mesh(Superquadric.create(scale, eps), resolution=10)

@@ -190,8 +190,12 @@ class ObjectCounts:
         return self.scenes - self.grasped
 
     @property
+    def failures(self) -> int:
+        return sum(self.failed.values())
+
+    @property
     def attempts(self) -> int:
-        return self.grasped + sum(self.failed.values())
+        return self.grasped + self.failures
 
 
 def object_breakdown(logs: Iterable[Mapping]) -> dict[str, ObjectCounts]:

@@ -242,15 +242,14 @@ def object_outcomes_markdown(logs: Iterable[Mapping], top: int = 12) -> str:
         methods = _method_order(m for s, m in by_cell if s == setting)
         counts = {m: metrics.object_breakdown(by_cell[(setting, m)]) for m in methods}
         names = {n for c in counts.values() for n, o in c.items() if o.not_grasped or o.failed}
-        total = lambda n, key: sum(getattr(c[n], key) if key == "not_grasped" else c[n].attempts - c[n].grasped
-                                   for c in counts.values() if n in c)
-        order = sorted(names, key=lambda n: (-total(n, "not_grasped"), -total(n, "failed"), n))
+        total = lambda n, key: sum(getattr(c[n], key) for c in counts.values() if n in c)
+        order = sorted(names, key=lambda n: (-total(n, "not_grasped"), -total(n, "failures"), n))
         body = []
         for name in order[:top]:
             cells = []
             for m in methods:
                 o = counts[m].get(name)
-                cells.append("–" if o is None else f"{o.not_grasped} / {o.scenes}, {sum(o.failed.values())}")
+                cells.append("–" if o is None else f"{o.not_grasped} / {o.scenes}, {o.failures}")
             body.append([name, *cells])
         more = f" ({len(order) - top} more)" if len(order) > top else ""
         head = f"{setting}{more}: not grasped / in scenes, failed grasps"
