@@ -198,9 +198,9 @@ def _pipeline(obj, obj_mask, scene, scene_mask, viewpoint, plane, scale, neighbo
     poses, widths, mask = poses.reshape(b, k2 * g, 4, 4), widths.reshape(b, k2 * g), mask.reshape(b, k2 * g)
     f = 0
     if cfg.fit_grasps is not None:  # the fit's own grasps first, so that max_candidates never drops them
-        own = jax.vmap(lambda sq, pl: fit_top_down_grasps(sq, pl, cfg.spec, cfg.fit_grasps))(fit.superquadric, plane)
+        on_fit = jax.vmap(lambda sq, pl: fit_top_down_grasps(sq, pl, cfg.spec, cfg.fit_grasps))(fit.superquadric, plane)
         f = cfg.fit_grasps.count
-        poses, widths, mask = (jnp.concatenate([a, c], 1) for a, c in zip(own, (poses, widths, mask)))
+        poses, widths, mask = (jnp.concatenate([a, c], 1) for a, c in zip(on_fit, (poses, widths, mask)))
     mask &= fit.valid[:, None]
     # Compact the valid slots to the front (stable: match order is kept), then keep max_candidates.
     order = jnp.argsort(~mask, axis=1, stable=True)[:, : cfg.max_candidates]
