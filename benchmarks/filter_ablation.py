@@ -26,7 +26,7 @@ from eval import report
 from envs.scene import stage2_scene_cloud
 from eval.benchmark import run_benchmark
 from eval.methods import make_method
-from sgjax.planner import PlannerConfig
+from sgjax.planner import PlannerConfig, RobustChoice
 from sgjax.stage1.filters import FilterConfig
 from sgjax.stage1.fit_grasps import FitGraspConfig
 from sgjax.stage1.neighbours import NeighbourFitConfig
@@ -69,6 +69,9 @@ VARIANTS = {
     # `sgjax.stage1.fit_grasps`; default: in both plans) off, or only in the second plan.
     "no-fit-grasps": {"planner": {"fit_grasps": None}},
     "fit-grasps-second": {"planner": {"fit_grasps": FitGraspConfig(first_plan=False)}},
+    # Not a filter: among the 12 best-evaluated passing candidates, the one whose score holds up at small
+    # perturbations of its pose (`PlannerConfig.robust`, `RobustChoice`).
+    "robust": {"planner": {"robust": RobustChoice()}},
 }
 
 

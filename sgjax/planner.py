@@ -96,6 +96,37 @@ FALLBACK_FILTER = FilterConfig(shadow_depth=0.0, hidden_contacts="accept", max_n
 
 
 @dataclasses.dataclass(frozen=True)
+class RobustChoice:
+    """`PlannerConfig.robust`: execute, among the `top` best-evaluated passing candidates, the one whose
+    score holds up when the hand lands a little off: E-RNet judges each at five perturbed poses
+    (`gripper.perturbed_poses`: `shift` metres either way along the finger width and backed out along
+    the approach, `angle_deg` either way about the approach axis), and the candidate with the highest mean
+    of its own and those five scores is executed (ties: the better evaluated). Why: the best of hundreds of
+    scores is the one most likely over-estimated, and a grasp at the edge of the object (held by a tip,
+    far off its middle) loses its score when moved by millimetres."""
+
+    top: int = 12
+    shift: float = 0.005
+    angle_deg: float = 10.0
+
+    def __post_init__(self):
+        if self.top < 2:
+            raise ValueError(f"RobustChoice.top must be >= 2 (the candidates compared), got {self.top}")
+        if not (np.isfinite(self.shift) and 0.0 <= self.shift <= 0.05):
+            raise ValueError(f"RobustChoice.shift must be in [0, 0.05] metres, got {self.shift}")
+        if not (np.isfinite(self.angle_deg) and 0.0 <= self.angle_deg < 90.0):
+            raise ValueError(f"RobustChoice.angle_deg must be in [0, 90), got {self.angle_deg}")
+
+    @property
+    def rows(self) -> int:
+        """Stage-2 rows of one robustness call: `top` candidates x 5 perturbations."""
+        return self.top * PERTURBATIONS
+
+
+PERTURBATIONS = 5  # poses per candidate from `gripper.perturbed_poses`
+
+
+@dataclasses.dataclass(frozen=True)
 class PlannerConfig:
     """Planner settings (hashable).
 
@@ -163,6 +194,9 @@ class PlannerConfig:
         where the rest of the object's weight lies; grasps held far off it drop more often under the
         disturbance (docs/benchmark.md, "The lever arm"). Which object is grasped, and refinements, are
         chosen as without it. 0 (default): the paper's choice.
+    robust: among the best-evaluated passing candidates, execute the one whose E-RNet score holds up at
+        small perturbations of its pose (`RobustChoice`; one more Stage-2 call on the smallest batch).
+        None (default): the paper's choice, the highest evaluation.
     reuse_tolerance: with a `Stage1Memory` passed to `plan`, an object whose cloud is the same as when
         Stage 1 last ran on it, within this many metres (`pointcloud.same_cloud`), keeps those candidates
         and is only tested against the obstacles of now (`Stage1.rescene`). 0: only identical clouds.
@@ -192,6 +226,7 @@ class PlannerConfig:
     reuse_tolerance: float = 0.0005
     neighbour_fits: NeighbourFitConfig | None = NeighbourFitConfig()
     lever_weight: float = 0.0
+    robust: RobustChoice | None = None
 
     @property
     def first_stage1(self) -> Stage1Config:
@@ -225,6 +260,9 @@ class PlannerConfig:
                              f"{self.avoid_distance} and {self.avoid_angle_deg}")
         if not (np.isfinite(self.lever_weight) and self.lever_weight >= 0):
             raise ValueError(f"lever_weight must be a finite number >= 0 (per metre), got {self.lever_weight}")
+        if self.robust is not None and self.robust.rows > self.max_stage2_candidates:
+            raise ValueError(f"robust.top x {PERTURBATIONS} = {self.robust.rows} perturbed poses exceed "
+                             f"max_stage2_candidates={self.max_stage2_candidates}")
         if self.fallback_match is not None and self.fallback_filter is None:
             raise ValueError("fallback_match is the second plan's matching: it needs a fallback_filter (the second plan)")
         check_thresholds(self)
@@ -796,6 +834,10 @@ class Planner:
         if cfg.lever_weight > 0 and int(choice["kind"]) == KIND_EVALUATED:
             centroids = np.stack([np.mean(cloud, axis=0) for _, cloud, _ in objects])[obj]
             choice = prefer_short_lever(choice, scores, poses[:m], centroids, cfg)
+        if cfg.robust is not None and int(choice["kind"]) == KIND_EVALUATED:
+            choice = self._robust(choice, scores, poses[:m], widths[:m], scene_pad, scene_mask, seed, thresholds)
+            t2 = time.perf_counter()
+            timing.update(stage2_s=t2 - t1, total_s=t2 - start, compiled=_compile_count() != compiled)
         if cfg.use_refinement and cfg.refine_rescore and int(choice["kind"]) != KIND_EVALUATED:
             choice = self._rescore(scores, poses[:m], widths[:m], scene_pad, scene_mask, seed, thresholds)
             t2 = time.perf_counter()
@@ -847,6 +889,27 @@ class Planner:
 
         scores["refine_score"] = rescored_refinements(scores["refine_prob"], scores["valid"], cfg.refine_rescore, judge)
         return self._decide(scores["eval_prob"], scores["refine_score"], scores["valid"])
+
+    def _robust(self, choice: dict, scores: dict, poses: np.ndarray, widths: np.ndarray, scene_pad, scene_mask,
+                seed: int, thresholds) -> dict:
+        """An evaluated choice made again with `PlannerConfig.robust`: the best-evaluated passing
+        candidates judged at perturbed poses in one Stage-2 call (`robust_scores`). Adds
+        scores["robust_score"] [M] (NaN where not judged) -> choice, score its eval_prob."""
+        cfg = self.config
+
+        def judge(index):
+            perturbed = np.asarray(gripper.perturbed_poses(poses[index], cfg.robust.shift, cfg.robust.angle_deg), np.float32)
+            n = perturbed.shape[0] * PERTURBATIONS
+            slots = cfg.stage2_slots(n)  # a Stage-2 batch size, so that no plan compiles
+            pad_poses = np.tile(np.eye(4, dtype=np.float32), (slots, 1, 1))
+            pad_widths = np.full(slots, np.nan, np.float32)  # padding: invalid for E-RNet, and masked
+            pad_poses[:n] = perturbed.reshape(n, 4, 4)
+            pad_widths[:n] = np.repeat(widths[index], PERTURBATIONS)
+            out, _ = self._score(scene_pad, scene_mask, pad_poses, pad_widths, np.arange(slots) < n, seed, thresholds)
+            return np.where(out["valid"][:n], out["eval_prob"][:n], 0.0).reshape(-1, PERTURBATIONS)
+
+        scores["robust_score"] = robust_scores(scores["eval_prob"], scores["valid"], cfg.eval_threshold, cfg.robust.top, judge)
+        return robust_choice(choice, scores)
 
     def _decide(self, eval_prob: np.ndarray, refine_score: np.ndarray, valid: np.ndarray) -> dict:
         """`decide` on the host's scores [M], [M, K], [M], padded to the Stage-2 batch size that holds M so
@@ -943,6 +1006,35 @@ def prefer_short_lever(choice: dict, scores: dict, poses: np.ndarray, centroids:
     passing = same & np.asarray(scores["valid"], bool) & np.isfinite(e) & (e > cfg.eval_threshold)
     rank = e - cfg.lever_weight * gripper.lever_arm(poses, centroids, cfg.spec, xp=np)
     index = int(np.argmax(np.where(passing, rank, -np.inf)))
+    return {**choice, "index": np.int32(index), "score": np.float32(e[index])}
+
+
+def robust_scores(eval_prob, valid, threshold: float, top: int, judge) -> np.ndarray:
+    """`PlannerConfig.robust`'s scores: the `top` best-evaluated valid candidates with eval_prob above
+    `threshold` (eval_prob [M], valid [M]), each judged at its perturbed poses by `judge(index [t])` ->
+    [t, P] (the evaluation head's scores there, 0 where it cannot judge) -> [M]: the mean of the
+    candidate's own score and its P perturbed ones, NaN where not judged (all NaN when fewer than two
+    candidates pass: nothing to compare)."""
+    e = np.asarray(eval_prob, np.float32)
+    passing = np.flatnonzero(np.asarray(valid, bool) & np.isfinite(e) & (e > threshold))
+    index = passing[np.argsort(-e[passing], kind="stable")][:top]
+    robust = np.full(len(e), np.nan, np.float32)
+    if len(index) >= 2:
+        judged = np.asarray(judge(index), np.float32)
+        robust[index] = (e[index] + judged.sum(axis=1)) / (1 + judged.shape[1])
+    return robust
+
+
+def robust_choice(choice: dict, scores: dict) -> dict:
+    """The evaluated choice made again on scores["robust_score"] [M] (`robust_scores`): the highest
+    robust score (ties: the higher eval_prob, then the lowest index); the choice unchanged where no
+    candidate was judged. -> choice, score its eval_prob."""
+    robust = np.asarray(scores["robust_score"], np.float32)
+    if not np.isfinite(robust).any():
+        return choice
+    e = np.asarray(scores["eval_prob"], np.float32)
+    order = np.lexsort((np.arange(len(e)), -e, -np.where(np.isfinite(robust), robust, -np.inf)))
+    index = int(order[0])
     return {**choice, "index": np.int32(index), "score": np.float32(e[index])}
 
 

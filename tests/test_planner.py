@@ -13,11 +13,12 @@ import pytest
 from flax import nnx
 
 from sgjax import planner as planner_mod
-from sgjax.geometry import synthetic
+from sgjax.geometry import gripper as gripper_mod, synthetic
 from sgjax.stage2 import checkpoint, ernet
 from sgjax.stage2.ernet import ERNet, ERNetConfig
 from sgjax.geometry.gripper import GripperSpec, lever_arm, near_grasps, refined_pose
 from sgjax.planner import Planner, PlannerConfig, decide, select_grasp
+from sgjax.geometry.rotations import so3_exp
 from sgjax.geometry.superquadric import Superquadric
 
 SPEC = GripperSpec()
@@ -653,3 +654,74 @@ def test_prefer_short_lever_never_takes_a_candidate_that_does_not_pass():
     for bad in (-1.0, float("nan")):
         with pytest.raises(ValueError, match="lever_weight must be a finite number >= 0"):
             dataclasses.replace(CONFIG, lever_weight=bad)
+
+
+# ---------------------------------------------------------------------------------------------
+# `PlannerConfig.robust`: the choice among the best candidates by scores at perturbed poses.
+
+def test_perturbed_poses_move_and_turn_the_hand_in_its_own_frame():
+    rotation = np.asarray(so3_exp(jnp.array([0.3, -0.7, 1.1])), np.float64)
+    pose = np.eye(4)
+    pose[:3, :3], pose[:3, 3] = rotation, [0.1, -0.2, 0.3]
+    out = np.asarray(gripper_mod.perturbed_poses(pose, 0.005, 10.0), np.float64)
+    assert out.shape == (5, 4, 4)
+    y, z = rotation[:, 1], rotation[:, 2]
+    for k, offset in enumerate((-0.005 * y, 0.005 * y, -0.005 * z)):
+        np.testing.assert_allclose(out[k, :3, 3], pose[:3, 3] + offset, atol=1e-6)
+        np.testing.assert_allclose(out[k, :3, :3], rotation, atol=1e-6)
+    for k, sign in ((3, -1.0), (4, 1.0)):
+        np.testing.assert_allclose(out[k, :3, 3], pose[:3, 3], atol=1e-6)
+        np.testing.assert_allclose(out[k, :3, 2], z, atol=1e-6)  # the same approach axis
+        assert np.degrees(np.arctan2(out[k, :3, 0] @ y, out[k, :3, 0] @ rotation[:, 0])) == pytest.approx(sign * 10.0, abs=1e-3)
+
+
+def test_robust_scores_judge_only_the_best_passing_candidates():
+    eval_prob = np.array([0.95, 0.6, 0.9, 0.99, 0.8, np.nan], np.float32)
+    valid = np.array([True, True, True, False, True, True])
+    asked = []
+
+    def judge(index):
+        asked.append(np.asarray(index))
+        return np.where(np.asarray(index)[:, None] == 0, 0.2, 0.9) * np.ones((len(index), 5))
+
+    robust = planner_mod.robust_scores(eval_prob, valid, 0.7, 2, judge)
+    np.testing.assert_array_equal(asked[0], [0, 2])  # 0.99 is invalid, 0.8 is third, 0.6 and NaN fail
+    np.testing.assert_allclose(robust[[0, 2]], [(0.95 + 5 * 0.2) / 6, (0.9 + 5 * 0.9) / 6], atol=1e-6)
+    assert np.isnan(robust[[1, 3, 4, 5]]).all()
+    choice = {"index": np.int32(0), "kind": np.int32(1), "variant": np.int32(-1), "score": np.float32(0.95), "pose": None}
+    out = planner_mod.robust_choice(choice, {"eval_prob": eval_prob, "robust_score": robust})
+    assert int(out["index"]) == 2 and out["score"] == pytest.approx(0.9)
+    # One passing candidate: nothing to compare, nothing judged, the choice stands.
+    alone = planner_mod.robust_scores(eval_prob, valid & (np.arange(6) == 0), 0.7, 4, judge)
+    assert np.isnan(alone).all() and len(asked) == 1
+    assert planner_mod.robust_choice(choice, {"eval_prob": eval_prob, "robust_score": alone}) is choice
+
+
+def test_robust_choice_in_the_planner_is_judged_by_ernet_at_the_perturbed_poses(small_db, scene):
+    """`PlannerConfig.robust`: the planner's robust scores equal E-RNet's scores at `perturbed_poses` of the
+    best passing candidates (called directly), and the plan executes the highest of them."""
+    model = ERNet(TINY, rngs=nnx.Rngs(3))
+    config = dataclasses.replace(CONFIG, eval_threshold=0.0, robust=planner_mod.RobustChoice(top=4))
+    planner = Planner(model, small_db, config)
+    plan = planner.plan(*scene, viewpoint=CAMERA, seed=0)
+    s = plan.scores
+    judged = np.flatnonzero(np.isfinite(s["robust_score"]))
+    e = np.where(s["valid"], s["eval_prob"], -np.inf)
+    np.testing.assert_array_equal(np.sort(judged), np.sort(np.argsort(-e, kind="stable")[:4]))
+    poses = np.stack([plan.candidates[o].poses[r] for o, r in zip(s["object"], s["object_candidate"])]).astype(np.float32)
+    widths = np.array([plan.candidates[o].widths[r] for o, r in zip(s["object"], s["object_candidate"])], np.float32)
+    perturbed = np.asarray(gripper_mod.perturbed_poses(poses[judged], 0.005, 10.0)).reshape(-1, 4, 4)
+    scene_pad, scene_mask = planner._scene(scene[0], 0)
+    graphdef, state = nnx.split(model)
+    out = ernet.score(graphdef, state, scene_pad, perturbed, np.repeat(widths[judged], 5), scene_mask, spec=SPEC,
+                      key=jax.random.key(0))
+    around = np.where(out.valid, out.eval_prob, 0.0).reshape(-1, 5)
+    np.testing.assert_allclose(s["robust_score"][judged], (s["eval_prob"][judged] + around.sum(1)) / 6, atol=2e-5)
+    assert plan.kind == "evaluated" and plan.candidate_index == judged[np.argmax(s["robust_score"][judged])]
+    assert plan.score == pytest.approx(float(s["eval_prob"][plan.candidate_index]))
+    for bad, message in (({"top": 1}, "top must be >= 2"), ({"shift": -0.001}, "shift must be in"),
+                         ({"angle_deg": 90.0}, "angle_deg must be in")):
+        with pytest.raises(ValueError, match=message):
+            planner_mod.RobustChoice(**bad)
+    with pytest.raises(ValueError, match="exceed max_stage2_candidates"):
+        dataclasses.replace(CONFIG, robust=planner_mod.RobustChoice(top=200))

@@ -234,6 +234,18 @@ def refined_pose(pose: jax.Array, variant: jax.Array | int, spec: GripperSpec) -
     return rotated_about_approach(deepened_pose(pose, spec), angles[jnp.asarray(variant)])
 
 
+def perturbed_poses(pose: jax.Array, shift: float, angle_deg: float) -> jax.Array:
+    """Small perturbations of a grasp pose, for judging how robust a score is to where exactly the hand
+    lands: pose[..., 4, 4] -> [..., 5, 4, 4], in the pose's own frame: moved by -shift and +shift along
+    the finger width (y), backed out by `shift` along the approach (-z), and turned by -angle_deg and
+    +angle_deg about the approach axis. The pose itself is not among them."""
+    pose = _pose(pose)
+    y, z = pose[..., :3, 1], pose[..., :3, 2]
+    moved = [pose.at[..., :3, 3].add(offset) for offset in (-shift * y, shift * y, -shift * z)]
+    turned = [rotated_about_approach(pose, sign * jnp.deg2rad(angle_deg)) for sign in (-1.0, 1.0)]
+    return jnp.stack(moved + turned, axis=-3)
+
+
 def refined_poses(pose: jax.Array, spec: GripperSpec) -> jax.Array:
     """All refinement variants: pose[..., 4, 4] -> [..., K, 4, 4] with K = spec.num_refinements."""
     deep = deepened_pose(pose, spec)[..., None, :, :]

@@ -24,6 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from sgjax.geometry.gripper import GripperSpec
+from sgjax.geometry.rotations import so3_exp
 from sgjax.geometry.superquadric import Superquadric
 
 
@@ -71,12 +72,6 @@ class FitGraspConfig:
         return 2 * len(self.yaws_deg) * len(self.heights)
 
 
-def _rotate_about(v: jax.Array, axis: jax.Array, angle: float) -> jax.Array:
-    """v [3] rotated by `angle` (radians) about the unit `axis` [3] (Rodrigues)."""
-    c, s = np.cos(angle), np.sin(angle)
-    return v * c + jnp.cross(axis, v) * s + axis * jnp.dot(axis, v) * (1.0 - c)
-
-
 def fit_top_down_grasps(sq: Superquadric, plane: jax.Array, spec: GripperSpec,
                         cfg: FitGraspConfig) -> tuple[jax.Array, jax.Array, jax.Array]:
     """Top-down grasps on one fitted superquadric (module doc).
@@ -110,7 +105,7 @@ def fit_top_down_grasps(sq: Superquadric, plane: jax.Array, spec: GripperSpec,
         flat_norm = jnp.linalg.norm(flat)
         flat = flat / jnp.maximum(flat_norm, 1e-9)
         for yaw in cfg.yaws_deg:
-            x = _rotate_about(flat, up, np.radians(yaw))
+            x = so3_exp(up * np.radians(yaw)) @ flat
             across = 2.0 * extent(x)
             width = jnp.minimum(across + 2.0 * spec.contact_threshold, spec.max_opening)
             ok = (has_plane & (flat_norm > 1e-3) & (across <= spec.max_opening - cfg.min_margin)
