@@ -266,6 +266,7 @@ def coarse_filter(
     object_local: jax.Array | None = None,
     superquadric: Superquadric | None = None,
     viewpoint: jax.Array | None = None,
+    skip_normal: jax.Array | None = None,
 ) -> FilterResult:
     """Apply filters (i)-(v) to candidates of one object.
 
@@ -279,9 +280,13 @@ def coarse_filter(
     it nothing can judge a grasp whose contacts are all hidden, and such grasps are removed (as "reject").
     viewpoint [3]: the camera that saw the scene; with cfg.shadow_depth > 0, (iv) also tests the space
     each obstacle point hides (`sgjax.geometry.gripper.segment_regions`).
+    skip_normal: bool [M] or None: candidates that (iii) does not judge (e.g. the grasps on the fit
+        itself, `FitGraspConfig.normal_test`); their normal_angle is False.
     (iv) runs last, on at most `cfg.scene_slots` of the candidates that passed the other tests.
     """
-    def tests(p, w, v, lc=None):
+    skip = jnp.zeros_like(valid, bool) if skip_normal is None else jnp.asarray(skip_normal, bool)
+
+    def tests(p, w, v, sk, lc=None):
         hidden_cos = None
         if cfg.hidden_contacts == "superquadric" and superquadric is not None:
             hidden_cos = superquadric_contact_cos(superquadric, p, w, spec, cfg.line_samples)
@@ -291,13 +296,13 @@ def coarse_filter(
         collision_object = jnp.any(in_gripper & object_mask, -1)
         points_between = jnp.round(jnp.sum(in_closing, -1) * point_scale).astype(jnp.int32)
         too_few = points_between < cfg.min_points
-        normal_bad = ~_normal_test(local, in_closing, normals, p[:, :3, 0], cfg, hidden_cos)
+        normal_bad = ~_normal_test(local, in_closing, normals, p[:, :3, 0], cfg, hidden_cos) & ~sk
         below = below_plane(p, w, support_plane, spec, cfg)
         passed = v & ~collision_object & ~too_few & ~normal_bad & ~below
         none = jnp.zeros_like(passed)
         return FilterResult(passed, *(f & v for f in (collision_object, too_few, normal_bad, none, below, none)), points_between)
 
-    rows = (poses, widths, valid) if object_local is None else (poses, widths, valid, object_local)
+    rows = (poses, widths, valid, skip) if object_local is None else (poses, widths, valid, skip, object_local)
     result = map_chunks(tests, cfg.chunk, *rows)
     if scene_points is None:
         return result

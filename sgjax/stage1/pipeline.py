@@ -214,8 +214,11 @@ def _pipeline(obj, obj_mask, scene, scene_mask, viewpoint, plane, scale, neighbo
         poses = jax.vmap(lift)(poses, widths, plane)
     normals = estimate_normals(obj, obj_mask, viewpoint, neighbours=neighbours)
 
-    def one(p, w, v, o, om, nrm, pl, sc, sq):
-        def part(pc, wc, vc):  # a chunk of candidates: the tests over candidate x object point pairs
+    # The fit's own grasps skip the normal test (iii) unless their config asks for it.
+    skip_normal = own if cfg.fit_grasps is not None and not cfg.fit_grasps.normal_test else jnp.zeros_like(own)
+
+    def one(p, w, v, sk, o, om, nrm, pl, sc, sq):
+        def part(pc, wc, vc, skc):  # a chunk of candidates: the tests over candidate x object point pairs
             local = to_gripper_frame(o, pc)  # [m, N, 3]: shared by the adaptation and the filters
             if cfg.adapt_width:
                 shift, wc = recentre_and_widen(local, om, wc, cfg.spec, cfg.max_recentre)
@@ -223,16 +226,13 @@ def _pipeline(obj, obj_mask, scene, scene_mask, viewpoint, plane, scale, neighbo
                 pc = pc.at[:, :3, 3].add(shift[:, None] * pc[:, :3, 0])
                 local = local.at[..., 0].add(-shift[:, None])
             tested = coarse_filter(pc, wc, vc, o, om, nrm, None, None, cfg.spec, cfg.filter, pl, sc, object_local=local,
-                                   superquadric=sq)
+                                   superquadric=sq, skip_normal=skc)
             return pc, wc, tested
 
-        return map_chunks(part, cfg.filter.chunk, p, w, v)
+        return map_chunks(part, cfg.filter.chunk, p, w, v, sk)
 
-    poses, widths, filt = jax.vmap(one)(poses, widths, valid, obj, obj_mask, normals, plane, scale, fit.superquadric)
-    if cfg.fit_grasps is not None and not cfg.fit_grasps.normal_test:  # the fit's grasps skip (iii)
-        exempt = own & filt.normal_angle
-        filt = dataclasses.replace(filt, normal_angle=filt.normal_angle & ~own,
-                                   keep=filt.keep | (exempt & ~filt.collision_object & ~filt.too_few_points & ~filt.below_support))
+    poses, widths, filt = jax.vmap(one)(poses, widths, valid, skip_normal, obj, obj_mask, normals, plane, scale,
+                                        fit.superquadric)
     if has_scene:  # (iv) last, on the candidates that passed the rest
         # Object by object (`lax.map`, not vmap), so that its chunks of slots no candidate reached are skipped.
         def with_scene(args):
