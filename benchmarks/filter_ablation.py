@@ -69,8 +69,10 @@ VARIANTS = {
     # `sgjax.stage1.fit_grasps`; default: in both plans) off, or only in the second plan.
     "no-fit-grasps": {"planner": {"fit_grasps": None}},
     "fit-grasps-second": {"planner": {"fit_grasps": FitGraspConfig(first_plan=False)}},
-    # Not a filter: among the 12 best-evaluated passing candidates, the one whose score holds up at small
-    # perturbations of its pose (`PlannerConfig.robust`, `RobustChoice`).
+    # Not a filter: the best-evaluated candidate executed, not the one among the 12 best whose score holds
+    # up at small perturbations of its pose (`PlannerConfig.robust`, `RobustChoice`; default since
+    # 2026-12-03 night); "robust" names the default's choice explicitly (the runs that measured it).
+    "no-robust": {"planner": {"robust": None}},
     "robust": {"planner": {"robust": RobustChoice()}},
 }
 

@@ -78,6 +78,11 @@ class PlannerMethod:
             cands = plan.candidates[int(plan.scores["object"][row])]
             if cands.primitive_id[int(plan.scores["object_candidate"][row])] < 0:
                 info["fit_grasp"] = True
+            robust = plan.scores.get("robust_score")
+            if robust is not None and np.isfinite(robust[row]):
+                # `PlannerConfig.robust`: how many judged candidates evaluated higher than the one executed
+                # (0: the paper's choice too).
+                info["robust_rank"] = int(np.sum(np.isfinite(robust) & (plan.scores["eval_prob"] > plan.scores["eval_prob"][row])))
         if plan.pose is None:
             return Decision(None, 0.0, 0.0, plan.reason or "no grasp", timing, info)
         return Decision(np.asarray(plan.pose, np.float64), float(plan.width), float(plan.score), "", timing, info)

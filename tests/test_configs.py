@@ -18,6 +18,8 @@ from train.label import LabelConfig
     LabelConfig(),
     LabelConfig(per_source=(("stage1", 6), ("gpd", 3)), n_objects=3, object_set="tiny", held_out_objects=(), relabel_extra=2),
     Stage1Config(match=MatchConfig(K1=30, relabel_extra=4)),
+    PlannerConfig(),  # with its nested optional configs (fit grasps, neighbours' fits, the robust choice)
+    PlannerConfig(robust=None, fit_grasps=None),
 ])
 def test_saved_configs_come_back_equal(config):
     saved = json.loads(json.dumps(dataclasses.asdict(config)))  # lists where the config holds tuples

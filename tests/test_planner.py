@@ -26,9 +26,10 @@ CAMERA = np.array([0.4, -0.1, 0.6])
 # Random centroid sampling compiles faster than FPS. One Stage-1 shape (batches of 1 object) and the
 # default Stage-2 shapes, which `sgjax plan` (default config) then reuses: two compiles in all. No second
 # plan with the fallback filter (the paper's planner; that plan has its own test below), so that a plan
-# without a grasp says exactly why and compiles nothing more.
+# without a grasp says exactly why and compiles nothing more; and the paper's choice, the highest
+# evaluation (`PlannerConfig.robust` has its own tests at the end).
 TINY = ERNetConfig.tiny(backbone=dataclasses.replace(ERNetConfig.tiny().backbone, sampler="random"))
-CONFIG = PlannerConfig(stage1_batch_sizes=(1,), fallback_filter=None)
+CONFIG = PlannerConfig(stage1_batch_sizes=(1,), fallback_filter=None, robust=None)
 PAPER_RULE = dataclasses.replace(CONFIG, refine_rescore=0)  # a refinement scored by the refine head alone
 
 
