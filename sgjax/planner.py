@@ -204,6 +204,14 @@ class PlannerConfig:
         92.6 % against 90.2 %) and on every other setting it moved GSR and TSR by less than a scene's worth
         (docs/benchmark.md, "A choice that holds up"). None: the paper's choice, the highest evaluation.
         Default `RobustChoice()`.
+    reuse_tolerance: with a `Stage1Memory` passed to `plan`, an object whose cloud is the same as when
+        Stage 1 last ran on it, within this many metres (`pointcloud.same_cloud`), keeps those candidates
+        and is only tested against the obstacles of now (`Stage1.rescene`). 0: only identical clouds.
+        Without a memory, Stage 1 runs afresh on every object. Default 0.5 mm: between two attempts of a
+        decluttering scene an untouched object's cloud moves by a median 0.14 mm (re-settling), a nudged
+        one by millimetres; on seen-10 (N = 30) 0.5 mm kept GSR / TSR at those of no memory (97.0 / 98.3
+        against 97.4 / 99.0) with 3.8 objects per plan from memory, while 2 mm let stale grasps of nudged
+        objects through (94.2 / 97.7). A real camera's noise is larger: set it to the noise level there.
     """
 
     stage1: Stage1Config = dataclasses.field(default_factory=Stage1Config)
