@@ -422,6 +422,16 @@ def refine_proposals(refine_prob, valid, count: int) -> tuple[np.ndarray, np.nda
     return flat // k, flat % k
 
 
+def padded_batch(poses, widths, slots: int) -> tuple[np.ndarray, np.ndarray]:
+    """Candidates poses [n, 4, 4], widths [n] padded to a Stage-2 batch of `slots` rows (identity poses,
+    NaN widths: invalid for E-RNet, and masked) -> (poses [slots, 4, 4] f32, widths [slots] f32)."""
+    n = len(widths)
+    padded_poses = np.tile(np.eye(4, dtype=np.float32), (slots, 1, 1))
+    padded_widths = np.full(slots, np.nan, np.float32)
+    padded_poses[:n], padded_widths[:n] = poses, widths
+    return padded_poses, padded_widths
+
+
 def padded_refinements(poses, widths, index, variant, slots: int, spec: GripperSpec) -> tuple[np.ndarray, np.ndarray]:
     """The refined poses of proposals (index [n], variant [n]) of candidates poses [M, 4, 4], widths [M],
     padded to `slots` rows so that the Stage-2 call that judges them has a shape it already compiled
@@ -808,15 +818,13 @@ class Planner:
         m = len(obj)
         slots = cfg.stage2_slots(m)
         offsets = np.cumsum([0] + [len(c) for c in candidates])[:-1]
-        poses = np.tile(np.eye(4, dtype=np.float32), (slots, 1, 1))
-        widths = np.full(slots, np.nan, np.float32)  # padding slots: invalid for E-RNet, and masked
-        poses[:m] = np.concatenate([c.poses for c in candidates])[offsets[obj] + row]
-        widths[:m] = np.concatenate([c.widths for c in candidates])[offsets[obj] + row]
+        poses, widths = padded_batch(np.concatenate([c.poses for c in candidates])[offsets[obj] + row],
+                                     np.concatenate([c.widths for c in candidates])[offsets[obj] + row], slots)
         scene_pad, scene_mask = self._scene(scene, seed)
         thresholds = np.array([cfg.eval_threshold, cfg.refine_threshold], np.float32)
         if not self._stage2_ready:  # compile every batch size now, so that no later plan stalls
             for size in cfg.stage2_sizes:
-                empty = np.tile(np.eye(4, dtype=np.float32), (size, 1, 1)), np.full(size, np.nan, np.float32)
+                empty = padded_batch(np.zeros((0, 4, 4), np.float32), np.zeros(0, np.float32), size)
                 args = (scene_pad, scene_mask, *empty, np.zeros(size, bool), seed, thresholds)
                 # A size already exported to the cache is only loaded (~0.3 s) when first used: a warm
                 # process's first plan then loads one Stage-2 program, not all of them.
@@ -908,10 +916,7 @@ class Planner:
             perturbed = np.asarray(gripper.perturbed_poses(poses[index], cfg.robust.shift, cfg.robust.angle_deg), np.float32)
             n = perturbed.shape[0] * PERTURBATIONS
             slots = cfg.stage2_slots(n)  # a Stage-2 batch size, so that no plan compiles
-            pad_poses = np.tile(np.eye(4, dtype=np.float32), (slots, 1, 1))
-            pad_widths = np.full(slots, np.nan, np.float32)  # padding: invalid for E-RNet, and masked
-            pad_poses[:n] = perturbed.reshape(n, 4, 4)
-            pad_widths[:n] = np.repeat(widths[index], PERTURBATIONS)
+            pad_poses, pad_widths = padded_batch(perturbed.reshape(n, 4, 4), np.repeat(widths[index], PERTURBATIONS), slots)
             out, _ = self._score(scene_pad, scene_mask, pad_poses, pad_widths, np.arange(slots) < n, seed, thresholds)
             return np.where(out["valid"][:n], out["eval_prob"][:n], 0.0).reshape(-1, PERTURBATIONS)
 
