@@ -74,6 +74,8 @@ VARIANTS = {
     # 2026-12-03 night); "robust" names the default's choice explicitly (the runs that measured it).
     "no-robust": {"planner": {"robust": None}},
     "robust": {"planner": {"robust": RobustChoice()}},
+    # ... and a perturbed pose that meets a neighbour's fitted superquadric counts 0 (`RobustChoice.fits`).
+    "robust-fits": {"planner": {"robust": RobustChoice(fits=True)}},
 }
 
 

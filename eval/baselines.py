@@ -113,11 +113,9 @@ class CandidateSet:
 
 
 def _padded(poses, widths, target, slots: int, found: int, reason: str = "", info=None) -> CandidateSet:
-    n = len(widths)
-    out_p = np.tile(np.eye(4, dtype=np.float32), (slots, 1, 1))
-    out_w = np.full(slots, np.nan, np.float32)
+    out_p, out_w = planner.padded_batch(poses, widths, slots)  # the planner's Stage-2 padding
     out_t = np.full(slots, -1, np.int64)
-    out_p[:n], out_w[:n], out_t[:n] = poses, widths, target
+    out_t[:len(widths)] = target
     return CandidateSet(out_p, out_w, n, found, out_t, reason, dict(info or {}))
 
 

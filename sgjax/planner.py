@@ -110,6 +110,10 @@ class RobustChoice:
     top: int = 12
     shift: float = 0.005
     angle_deg: float = 10.0
+    # Also a pose's collisions: a perturbed pose whose hand meets another object's fitted superquadric
+    # (`PlannerConfig.neighbour_fits`, where the plan tests them) counts 0, as E-RNet's crop shows only
+    # the neighbours' observed sides. False: E-RNet's scores alone.
+    fits: bool = False
 
     def __post_init__(self):
         if self.top < 2:
@@ -850,7 +854,8 @@ class Planner:
             centroids = np.stack([np.mean(cloud, axis=0) for _, cloud, _ in objects])[obj]
             choice = prefer_short_lever(choice, scores, poses[:m], centroids, cfg)
         if cfg.robust is not None and int(choice["kind"]) == KIND_EVALUATED:
-            choice = self._robust(choice, scores, poses[:m], widths[:m], scene_pad, scene_mask, seed, thresholds)
+            choice = self._robust(choice, scores, poses[:m], widths[:m], scene_pad, scene_mask, seed, thresholds,
+                                  fitted, stage1.config.filter.approach_clearance)
             t2 = time.perf_counter()
             timing.update(stage2_s=t2 - t1, total_s=t2 - start, compiled=_compile_count() != compiled)
         if cfg.use_refinement and cfg.refine_rescore and int(choice["kind"]) != KIND_EVALUATED:
@@ -906,11 +911,14 @@ class Planner:
         return self._decide(scores["eval_prob"], scores["refine_score"], scores["valid"])
 
     def _robust(self, choice: dict, scores: dict, poses: np.ndarray, widths: np.ndarray, scene_pad, scene_mask,
-                seed: int, thresholds) -> dict:
+                seed: int, thresholds, fitted: tuple | None = None, sweep: float = 0.0) -> dict:
         """An evaluated choice made again with `PlannerConfig.robust`: the best-evaluated passing
-        candidates judged at perturbed poses in one Stage-2 call (`robust_scores`). Adds
-        scores["robust_score"] [M] (NaN where not judged) -> choice, score its eval_prob."""
+        candidates judged at perturbed poses in one Stage-2 call (`robust_scores`); with
+        `RobustChoice.fits` and the neighbours' fits `fitted` (`neighbours.obstacle_fits`), a perturbed
+        pose whose hand meets one scores 0. Adds scores["robust_score"] [M] (NaN where not judged) ->
+        choice, score its eval_prob."""
         cfg = self.config
+        test_fits = cfg.robust.fits and fitted is not None
 
         def judge(index):
             perturbed = np.asarray(gripper.perturbed_poses(poses[index], cfg.robust.shift, cfg.robust.angle_deg), np.float32)
@@ -918,7 +926,14 @@ class Planner:
             slots = cfg.stage2_slots(n)  # a Stage-2 batch size, so that no plan compiles
             pad_poses, pad_widths = padded_batch(perturbed.reshape(n, 4, 4), np.repeat(widths[index], PERTURBATIONS), slots)
             out, _ = self._score(scene_pad, scene_mask, pad_poses, pad_widths, np.arange(slots) < n, seed, thresholds)
-            return np.where(out["valid"][:n], out["eval_prob"][:n], 0.0).reshape(-1, PERTURBATIONS)
+            judged = np.where(out["valid"][:n], out["eval_prob"][:n], 0.0)
+            if test_fits:
+                fits, mask, pairs = fitted
+                owner = np.repeat(np.asarray(scores["object"], np.int32)[index], PERTURBATIONS)
+                hits = neighbours.fit_hits(pad_poses[:n], pad_widths[:n], owner, fits, mask, cfg.spec,
+                                           cfg.neighbour_fits, sweep, cfg.stage2_sizes, pairs)
+                judged = np.where(hits, 0.0, judged)
+            return judged.reshape(-1, PERTURBATIONS)
 
         scores["robust_score"] = robust_scores(scores["eval_prob"], scores["valid"], cfg.eval_threshold, cfg.robust.top, judge)
         return robust_choice(choice, scores)

@@ -720,6 +720,42 @@ def test_robust_choice_in_the_planner_is_judged_by_ernet_at_the_perturbed_poses(
     np.testing.assert_allclose(s["robust_score"][judged], (s["eval_prob"][judged] + around.sum(1)) / 6, atol=2e-5)
     assert plan.kind == "evaluated" and plan.candidate_index == judged[np.argmax(s["robust_score"][judged])]
     assert plan.score == pytest.approx(float(s["eval_prob"][plan.candidate_index]))
+
+
+def test_robust_choice_counts_perturbed_poses_that_meet_a_neighbours_fit_as_zero(small_db):
+    """`RobustChoice(fits=True)`: beside a low box whose side facing the target is hidden, a perturbed pose
+    whose hand meets the neighbour's fitted superquadric (`neighbours.fit_hits`, called directly) counts
+    0 in its candidate's robust score, and only those: the rest are E-RNet's scores as without the test."""
+    from sgjax.stage1 import neighbours
+
+    points, labels, tall, low = tall_and_low()
+    model = ERNet(TINY, rngs=nnx.Rngs(3))
+    config = dataclasses.replace(CONFIG, eval_threshold=0.0, robust=planner_mod.RobustChoice(top=64, fits=True))
+    plan = Planner(model, small_db, config).plan(points, labels, viewpoint=CAMERA)
+    plain = Planner(model, small_db, dataclasses.replace(config, robust=planner_mod.RobustChoice(top=64))).plan(
+        points, labels, viewpoint=CAMERA)
+    s = plan.scores
+    judged = np.flatnonzero(np.isfinite(s["robust_score"]))
+    np.testing.assert_array_equal(judged, np.flatnonzero(np.isfinite(plain.scores["robust_score"])))
+    poses = np.stack([plan.candidates[o].poses[r] for o, r in zip(s["object"], s["object_candidate"])]).astype(np.float32)
+    widths = np.array([plan.candidates[o].widths[r] for o, r in zip(s["object"], s["object_candidate"])], np.float32)
+    perturbed = np.asarray(gripper_mod.perturbed_poses(poses[judged], 0.005, 10.0)).reshape(-1, 4, 4)
+    fits, mask, pairs = neighbours.obstacle_fits(plan.candidates, [tall, low], config.neighbour_fits)
+    hits = neighbours.fit_hits(perturbed, np.repeat(widths[judged], 5), np.repeat(s["object"][judged], 5).astype(np.int32),
+                               fits, mask, SPEC, config.neighbour_fits, 0.05, (64, 512), pairs).reshape(-1, 5)
+    assert 0 < hits.any(1).sum() < len(judged)  # some judged candidates lose perturbed poses, not all
+    scene_pad, scene_mask = Planner(model, small_db, config)._scene(points, 0)
+    graphdef, state = nnx.split(model)
+    out = ernet.score(graphdef, state, scene_pad, perturbed, np.repeat(widths[judged], 5), scene_mask, spec=SPEC,
+                      key=jax.random.key(0))
+    around = np.where(out.valid, out.eval_prob, 0.0).reshape(-1, 5)
+    expected = (s["eval_prob"][judged] + np.where(hits, 0.0, around).sum(1)) / 6
+    np.testing.assert_allclose(s["robust_score"][judged], expected, atol=2e-5)
+    np.testing.assert_allclose(plain.scores["robust_score"][judged], (s["eval_prob"][judged] + around.sum(1)) / 6, atol=2e-5)
+
+
+def test_robust_choice_config_errors():
+    """Bad `RobustChoice` settings, and more perturbed poses than a Stage-2 call takes, are refused by name."""
     for bad, message in (({"top": 1}, "top must be >= 2"), ({"shift": -0.001}, "shift must be in"),
                          ({"angle_deg": 90.0}, "angle_deg must be in")):
         with pytest.raises(ValueError, match=message):
