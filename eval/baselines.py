@@ -116,7 +116,7 @@ def _padded(poses, widths, target, slots: int, found: int, reason: str = "", inf
     out_p, out_w = planner.padded_batch(poses, widths, slots)  # the planner's Stage-2 padding
     out_t = np.full(slots, -1, np.int64)
     out_t[:len(widths)] = target
-    return CandidateSet(out_p, out_w, n, found, out_t, reason, dict(info or {}))
+    return CandidateSet(out_p, out_w, len(widths), found, out_t, reason, dict(info or {}))
 
 
 def _empty(slots: int, reason: str, info=None) -> CandidateSet:
