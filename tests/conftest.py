@@ -16,6 +16,14 @@ import jax  # noqa: E402
 import pytest  # noqa: E402
 
 from sgjax.stage1.database import DBConfig, build_database  # noqa: E402
+from sgjax.utils.cache import enable_compilation_cache  # noqa: E402
+
+# Every test module drops its compiled programs when it ends (below), and the next module that uses the
+# same program compiles it again unless JAX's persistent cache holds it. The library keeps only programs
+# that took over 0.2 s to compile (`enable_compilation_cache`); the suite also compiles hundreds of small
+# ones (array helpers, geometry, the decision policy), the same in every module, so it keeps them all.
+if enable_compilation_cache() is not None:
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 
 
 @pytest.fixture(scope="session")
