@@ -112,7 +112,8 @@ class RobustChoice:
     angle_deg: float = 10.0
     # Also a pose's collisions: a perturbed pose whose hand meets another object's fitted superquadric
     # (`PlannerConfig.neighbour_fits`, where the plan tests them) counts 0, as E-RNet's crop shows only
-    # the neighbours' observed sides. False: E-RNet's scores alone.
+    # the neighbours' observed sides. False (default): E-RNet's scores alone; the test measured worse in
+    # dense clutter (more collisions, not fewer: docs/benchmark.md).
     fits: bool = False
 
     def __post_init__(self):

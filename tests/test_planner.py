@@ -731,7 +731,8 @@ def test_robust_choice_counts_perturbed_poses_that_meet_a_neighbours_fit_as_zero
     points, labels, tall, low = tall_and_low()
     model = ERNet(TINY, rngs=nnx.Rngs(3))
     config = dataclasses.replace(CONFIG, eval_threshold=0.0, robust=planner_mod.RobustChoice(top=64, fits=True))
-    plan = Planner(model, small_db, config).plan(points, labels, viewpoint=CAMERA)
+    planner = Planner(model, small_db, config)
+    plan = planner.plan(points, labels, viewpoint=CAMERA)
     plain = Planner(model, small_db, dataclasses.replace(config, robust=planner_mod.RobustChoice(top=64))).plan(
         points, labels, viewpoint=CAMERA)
     s = plan.scores
@@ -744,7 +745,7 @@ def test_robust_choice_counts_perturbed_poses_that_meet_a_neighbours_fit_as_zero
     hits = neighbours.fit_hits(perturbed, np.repeat(widths[judged], 5), np.repeat(s["object"][judged], 5).astype(np.int32),
                                fits, mask, SPEC, config.neighbour_fits, 0.05, (64, 512), pairs).reshape(-1, 5)
     assert 0 < hits.any(1).sum() < len(judged)  # some judged candidates lose perturbed poses, not all
-    scene_pad, scene_mask = Planner(model, small_db, config)._scene(points, 0)
+    scene_pad, scene_mask = planner._scene(points, 0)
     graphdef, state = nnx.split(model)
     out = ernet.score(graphdef, state, scene_pad, perturbed, np.repeat(widths[judged], 5), scene_mask, spec=SPEC,
                       key=jax.random.key(0))
