@@ -69,6 +69,9 @@ VARIANTS = {
     # `sgjax.stage1.fit_grasps`; default: in both plans) off, or only in the second plan.
     "no-fit-grasps": {"planner": {"fit_grasps": None}},
     "fit-grasps-second": {"planner": {"fit_grasps": FitGraspConfig(first_plan=False)}},
+    # ... only straight across the fit's horizontal axes (no ±15° turns): on the lone lens the grasps
+    # 0-10° off its short axis held 90 %, 10-20° off 62 % (docs/benchmark.md, "Grasps on the fit itself").
+    "fit-grasps-straight": {"planner": {"fit_grasps": FitGraspConfig(yaws_deg=(0.0,))}},
     # Not a filter: the best-evaluated candidate executed, not the one among the 12 best whose score holds
     # up at small perturbations of its pose (`PlannerConfig.robust`, `RobustChoice`; default since
     # 2026-12-03 night); "robust" names the default's choice explicitly (the runs that measured it).
