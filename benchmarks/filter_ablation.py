@@ -77,6 +77,9 @@ VARIANTS = {
     # 2026-12-03 night); "robust" names the default's choice explicitly (the runs that measured it).
     "no-robust": {"planner": {"robust": None}},
     "robust": {"planner": {"robust": RobustChoice()}},
+    # Not a filter: after a failed grasp, the other objects first (`PlannerConfig.failed_last`: a failed
+    # grasp counts for the object with an observed point within 2 cm of its closing region's centre).
+    "failed-last": {"planner": {"failed_last": 0.02}},
     # ... and a perturbed pose that meets a neighbour's fitted superquadric counts 0 (`RobustChoice.fits`).
     "robust-fits": {"planner": {"robust": RobustChoice(fits=True)}},
 }

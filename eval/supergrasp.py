@@ -78,6 +78,10 @@ class PlannerMethod:
             cands = plan.candidates[int(plan.scores["object"][row])]
             if cands.primitive_id[int(plan.scores["object_candidate"][row])] < 0:
                 info["fit_grasp"] = True
+            failures = plan.scores.get("failures")
+            if failures is not None:  # `PlannerConfig.failed_last`: objects a failed grasp was on, and the target's count
+                info["failed_objects"] = len(set(np.asarray(plan.scores["object"])[np.asarray(failures) > 0].tolist()))
+                info["target_failures"] = int(failures[row])
             robust = plan.scores.get("robust_score")
             if robust is not None and np.isfinite(robust[row]):
                 # `PlannerConfig.robust`: how many judged candidates evaluated higher than the one executed

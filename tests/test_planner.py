@@ -763,3 +763,71 @@ def test_robust_choice_config_errors():
             planner_mod.RobustChoice(**bad)
     with pytest.raises(ValueError, match="exceed max_stage2_candidates"):
         dataclasses.replace(CONFIG, robust=planner_mod.RobustChoice(top=200))
+
+
+# ---------------------------------------------------------------------------------------------
+# `PlannerConfig.failed_last`: after a failed grasp, the other objects first.
+
+def test_failure_counts_give_each_failed_grasp_to_the_object_nearest_its_closing_region():
+    """A failed pose counts for the object with an observed point nearest its closing region's centre,
+    within the radius; one nearer another object counts for that one, one far from all for none."""
+    rng = np.random.default_rng(0)
+    a = rng.uniform([0.0, 0.0, 0.0], [0.04, 0.04, 0.04], (300, 3))
+    b = rng.uniform([0.10, 0.0, 0.0], [0.14, 0.04, 0.04], (300, 3))
+    down = np.diag([1.0, -1.0, -1.0])  # approach straight down
+    L = SPEC.finger_length
+
+    def at(centre):  # a top-down pose whose closing region is centred at `centre`
+        pose = np.eye(4)
+        pose[:3, :3], pose[:3, 3] = down, np.asarray(centre) + np.array([0.0, 0.0, 0.5 * L])
+        return pose
+
+    avoid = np.stack([at([0.02, 0.02, 0.02]), at([0.12, 0.02, 0.02]), at([0.02, 0.02, 0.03]), at([0.07, 0.02, 0.3])])
+    np.testing.assert_array_equal(planner_mod.failure_counts(avoid, [a, b], SPEC, 0.02), [2, 1])
+    np.testing.assert_array_equal(planner_mod.failure_counts(avoid[:0], [a, b], SPEC, 0.02), [0, 0])
+    # Beside object a, 2.5 cm off its side (3.5 cm from b's): within a 5 cm radius, not within 1 cm.
+    beside = at([0.065, 0.02, 0.02])[None]
+    assert planner_mod.failure_counts(beside, [a, b], SPEC, 0.05).sum() == 1
+    assert planner_mod.failure_counts(beside, [a, b], SPEC, 0.01).sum() == 0
+
+
+def test_least_failed_chooses_among_the_objects_with_the_fewest_failures():
+    """Hand-set scores: the choice moves to the best passing candidate of the least-failed objects; an
+    object that failed is chosen again once no other object has a passing candidate."""
+    eval_prob = np.array([0.95, 0.9, 0.8, 0.6, 0.85], np.float32)
+    valid = np.array([True, True, True, True, False])
+    failures = np.array([1, 1, 0, 0, 0])  # candidates 0, 1 on an object that failed once
+    allowed = planner_mod.least_failed(eval_prob, valid, failures, 0.7)
+    np.testing.assert_array_equal(allowed, [False, False, True, True, True])
+    choice = {"index": np.int32(0), "kind": np.int32(planner_mod.KIND_EVALUATED), "score": np.float32(0.95), "pose": None}
+    out = planner_mod.evaluated_choice(choice, eval_prob, valid & allowed, 0.7)
+    assert int(out["index"]) == 2 and out["score"] == pytest.approx(0.8)  # 4 is invalid, 3 does not pass
+    # Only the failed object passes: it is chosen as before.
+    weak = np.array([0.95, 0.9, 0.5, 0.6, 0.85], np.float32)
+    allowed = planner_mod.least_failed(weak, valid, failures, 0.7)
+    assert allowed[:2].all() and planner_mod.evaluated_choice(choice, weak, valid & allowed, 0.7) is choice
+    # Nothing passes: every candidate allowed (the refinement path decides as without it).
+    assert planner_mod.least_failed(np.zeros(5, np.float32), valid, failures, 0.7).all()
+    with pytest.raises(ValueError, match="failed_last must be None or a finite distance > 0"):
+        dataclasses.replace(CONFIG, failed_last=0.0)
+
+
+def test_failed_last_plans_the_other_object_after_a_failed_grasp(small_db, scene):
+    """In the planner: with the executed grasp passed back as failed (`avoid`), the next plan counts it on
+    that object and takes the other object, the robust choice judging only the other object's
+    candidates; without `failed_last` the same plan stays on the first object."""
+    model = ERNet(TINY, rngs=nnx.Rngs(3))
+    config = dataclasses.replace(CONFIG, eval_threshold=0.0, robust=planner_mod.RobustChoice(top=4))
+    plain = Planner(model, small_db, config)
+    first = plain.plan(*scene, viewpoint=CAMERA, seed=0)
+    avoid = first.pose[None]
+    again = plain.plan(*scene, viewpoint=CAMERA, seed=0, avoid=avoid)
+    assert first.kind == "evaluated" and again.target == first.target  # the next-best grasp, on the same object
+    deferring = Planner(model, small_db, dataclasses.replace(config, failed_last=0.02))
+    plan = deferring.plan(*scene, viewpoint=CAMERA, seed=0, avoid=avoid)
+    s = plan.scores
+    on_first = np.asarray(s["target"]) == first.target
+    np.testing.assert_array_equal(s["failures"], on_first.astype(int))
+    assert plan.kind == "evaluated" and plan.target != first.target
+    judged = np.flatnonzero(np.isfinite(s["robust_score"]))
+    assert len(judged) == 4 and not on_first[judged].any()
