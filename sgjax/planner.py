@@ -1053,7 +1053,7 @@ def prefer_short_lever(choice: dict, scores: dict, poses: np.ndarray, centroids:
     scores["object"] [M] -> choice, score its eval_prob."""
     e = np.asarray(scores["eval_prob"], np.float64)
     same = np.asarray(scores["object"]) == scores["object"][int(choice["index"])]
-    passing = same & np.asarray(scores["valid"], bool) & np.isfinite(e) & (e > cfg.eval_threshold)
+    passing = same & passing_mask(e, scores["valid"], cfg.eval_threshold)
     rank = e - cfg.lever_weight * gripper.lever_arm(poses, centroids, cfg.spec, xp=np)
     index = int(np.argmax(np.where(passing, rank, -np.inf)))
     return {**choice, "index": np.int32(index), "score": np.float32(e[index])}
@@ -1066,7 +1066,7 @@ def robust_scores(eval_prob, valid, threshold: float, top: int, judge) -> np.nda
     candidate's own score and its P perturbed ones, NaN where not judged (all NaN when fewer than two
     candidates pass: nothing to compare)."""
     e = np.asarray(eval_prob, np.float32)
-    passing = np.flatnonzero(np.asarray(valid, bool) & np.isfinite(e) & (e > threshold))
+    passing = np.flatnonzero(passing_mask(e, valid, threshold))
     index = passing[np.argsort(-e[passing], kind="stable")][:top]
     robust = np.full(len(e), np.nan, np.float32)
     if len(index) >= 2:
@@ -1086,6 +1086,12 @@ def robust_choice(choice: dict, scores: dict) -> dict:
     order = np.lexsort((np.arange(len(e)), -e, -np.where(np.isfinite(robust), robust, -np.inf)))
     index = int(order[0])
     return {**choice, "index": np.int32(index), "score": np.float32(e[index])}
+
+
+def passing_mask(eval_prob, valid, threshold: float) -> np.ndarray:
+    """The candidates whose evaluation passes: valid [M] with a finite eval_prob [M] above threshold -> bool [M]."""
+    e = np.asarray(eval_prob)
+    return np.asarray(valid, bool) & np.isfinite(e) & (e > threshold)
 
 
 def failure_counts(avoid, clouds, spec: GripperSpec, radius: float) -> np.ndarray:
@@ -1111,7 +1117,7 @@ def least_failed(eval_prob, valid, failures, threshold: float) -> np.ndarray:
     (failures int [M], per candidate: its object's count) among the objects with a valid candidate whose
     eval_prob [M] exceeds `threshold` -> bool [M] (all True when none passes)."""
     e, failures = np.asarray(eval_prob, np.float32), np.asarray(failures)
-    passing = np.asarray(valid, bool) & np.isfinite(e) & (e > threshold)
+    passing = passing_mask(e, valid, threshold)
     if not passing.any():
         return np.ones(len(e), bool)
     return failures == failures[passing].min()
@@ -1121,7 +1127,7 @@ def evaluated_choice(choice: dict, eval_prob, valid, threshold: float) -> dict:
     """The evaluated choice made again among valid [M]: the highest eval_prob [M] above threshold (ties:
     the lowest index); the choice unchanged when it is among them or none passes -> choice."""
     e = np.asarray(eval_prob, np.float32)
-    passing = np.asarray(valid, bool) & np.isfinite(e) & (e > threshold)
+    passing = passing_mask(e, valid, threshold)
     if not passing.any() or passing[int(choice["index"])]:
         return choice
     index = int(np.argmax(np.where(passing, e, -np.inf)))
