@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from train.judgement import judge, random_success, reliability, roc_auc, top_success
+from train.judgement import judge, random_success, reliability, roc_auc, top_outcomes, top_success
 
 
 def _auc_brute(score, label):
@@ -56,6 +56,10 @@ def test_judge_per_source_collisions_refinement_and_top_grasp():
     assert random_success(label, scene) == pytest.approx((2 / 3 + 1 / 3) / 2)
     # Source 0 competes with 2 grasps in scene 5 and 1 in scene 6.
     assert out["top1_scenes"] == 2 and out["top1_per_scene"] == pytest.approx(1.5)
+    # Their trial outcomes: both source-0 picks succeeded; over all sources scene 6's pick (0.7) collided.
+    assert out["top1_outcomes"] == {"success": 2}
+    assert top_outcomes(score, outcome, scene) == {"success": 1, "collision_pregrasp": 1}
+    assert out["per_source"]["b"]["top1_outcomes"] == {"success": 1, "collision_pregrasp": 1}
     # Per source, every metric on that source's samples alone.
     b = out["per_source"]["b"]
     assert b["samples"] == 2 and b["auc"] == 1.0 and b["collision_score"] == pytest.approx(0.7)

@@ -13,6 +13,8 @@ Computed by `sgjax train` on the held-out scenes and the held-out objects after 
   top1_success        per scene, the Stage-1 grasp with the highest score: the share that succeed
   random_success      per scene, a Stage-1 grasp picked at random: the expected share that succeed
   top1_scenes, top1_per_scene   the scenes behind both, and the mean Stage-1 samples competing per scene
+  top1_outcomes       (with `outcome`) per scene, the top Stage-1 grasp's trial outcome: {name: scenes}
+                      (`envs.rollout.Outcome` names, lower case), so a miss reads as a drop or a collision
   mean_score / positive_rate: the scorer's mean against the actual success rate
   auc_interval, top1_interval   (with `resamples` > 0) 95 % intervals of auc and top1_success by
                       resampling scenes with replacement (samples of a scene are not independent)
@@ -24,7 +26,9 @@ from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
 
-COLLISIONS = (1, 2)  # envs.rollout.Outcome.COLLISION_PREGRASP, COLLISION_APPROACH
+from envs.rollout import Outcome
+
+COLLISIONS = (Outcome.COLLISION_PREGRASP, Outcome.COLLISION_APPROACH)
 
 
 def roc_auc(score: np.ndarray, label: np.ndarray) -> float | None:
@@ -68,12 +72,29 @@ def top_success(score: np.ndarray, label: np.ndarray, group: np.ndarray) -> floa
     group = np.asarray(group)
     if len(group) == 0:
         return None
+    return float(np.mean(np.asarray(label)[top_rows(score, group)].astype(bool)))
+
+
+def top_rows(score: np.ndarray, group: np.ndarray) -> np.ndarray:
+    """Per group, the row of its highest score (the first such row on ties), groups in sorted order:
+    score, group [N] -> rows [G]."""
+    group = np.asarray(group)
     # One sort instead of a pass per group (the scene-resampled intervals call this 1000 times): by
     # group, then score descending, then position, so each group's first row is its argmax.
     order = np.lexsort((np.arange(len(group)), -np.asarray(score, np.float64), group))
     first = np.ones(len(order), bool)
     first[1:] = group[order][1:] != group[order][:-1]
-    return float(np.mean(np.asarray(label)[order][first].astype(bool)))
+    return order[first]
+
+
+def top_outcomes(score: np.ndarray, outcome: np.ndarray, group: np.ndarray) -> dict[str, int]:
+    """Per group (scene), the trial outcome of the highest-scored sample: {outcome name: groups} in
+    `Outcome` order (names, not codes, so the dict survives a JSON round trip unchanged). Whether the
+    scorer's misses are drops or collisions decides what would fix them. outcome [N]: Outcome codes."""
+    if len(np.asarray(group)) == 0:
+        return {}
+    codes, counts = np.unique(np.asarray(outcome)[top_rows(score, group)], return_counts=True)
+    return {Outcome(int(c)).name.lower(): int(n) for c, n in zip(codes, counts)}
 
 
 def random_success(label: np.ndarray, group: np.ndarray) -> float | None:
@@ -181,6 +202,8 @@ def judge(
         competing = np.unique(np.asarray(scene)[rows], return_counts=True)[1]
         out["top1_scenes"] = int(len(competing))
         out["top1_per_scene"] = float(competing.mean()) if len(competing) else None
+        if outcome is not None:
+            out["top1_outcomes"] = top_outcomes(score[rows], np.asarray(outcome)[rows], np.asarray(scene)[rows])
         if resamples > 0:
             out["auc_interval"] = scene_interval(lambda s, y, g: roc_auc(s, y), score, label, scene, resamples)
             out["top1_interval"] = scene_interval(top_success, score[rows], label[rows], np.asarray(scene)[rows], resamples)

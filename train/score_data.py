@@ -108,4 +108,8 @@ def report_table(result: dict[str, Any]) -> str:
     if result.get("top1_per_scene"):
         lines += ["", f"The top Stage-1 grasp of each of {result['top1_scenes']} scenes is picked among "
                       f"{result['top1_per_scene']:.1f} Stage-1 samples on average; its success rises with that number."]
+    missed = {name: n for name, n in (result.get("top1_outcomes") or {}).items() if name != "success"}
+    if missed:
+        lines += ["", "Where it failed, its trial ended: "
+                  + ", ".join(f"{name} {n}" for name, n in sorted(missed.items(), key=lambda kv: -kv[1])) + " (scenes)."]
     return "\n".join(lines)
