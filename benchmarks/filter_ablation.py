@@ -80,6 +80,10 @@ VARIANTS = {
     # Not a filter: after a failed grasp, the other objects first (`PlannerConfig.failed_last`: a failed
     # grasp counts for the object with an observed point within 2 cm of its closing region's centre).
     "failed-last": {"planner": {"failed_last": 0.02}},
+    # Filter (iv) on twice the obstacle points: in 20-object scenes an object's obstacle crop holds 10-18k
+    # camera points and the default 4,096-point subsample keeps a quarter, so a neighbour's sliver between
+    # the fingers can vanish from it (`Stage1Config.max_scene_points`).
+    "obstacles-8192": {"stage1": {"max_scene_points": 8192}},
     # ... and a perturbed pose that meets a neighbour's fitted superquadric counts 0 (`RobustChoice.fits`).
     "robust-fits": {"planner": {"robust": RobustChoice(fits=True)}},
 }
