@@ -101,3 +101,16 @@ def test_scene_intervals_resample_whole_scenes():
     assert out["top1_interval"][0] <= out["top1_success"] <= out["top1_interval"][1]
     assert out["per_source"]["a"]["auc_interval"] is not None
     assert "auc_interval" not in judge(score, label, scene=scene)
+
+
+def test_report_names_how_the_top_picks_failed():
+    from train.score_data import report_table
+
+    score = np.array([0.9, 0.2, 0.7, 0.6, 0.8, 0.1])
+    label = np.array([1, 0, 0, 1, 0, 1])
+    outcome = np.array([0, 2, 5, 0, 2, 0])  # scene 6's and 7's top picks dropped / collided
+    scene = np.array([5, 5, 6, 6, 7, 7])
+    text = report_table(judge(score, label, outcome=outcome, scene=scene, source=np.zeros(6, int), source_names=("stage1",)))
+    assert text.splitlines()[-1] == "Where it failed, its trial ended: collision_approach 1, dropped_disturbance 1 (scenes)."
+    text = report_table(judge(score, np.ones(6, int), outcome=np.zeros(6, int), scene=scene, source=np.zeros(6, int)))
+    assert "Where it failed" not in text  # no miss, no line
