@@ -84,6 +84,9 @@ VARIANTS = {
     # camera points and the default 4,096-point subsample keeps a quarter, so a neighbour's sliver between
     # the fingers can vanish from it (`Stage1Config.max_scene_points`).
     "obstacles-8192": {"stage1": {"max_scene_points": 8192}},
+    # The default before 2026-12-04: a crop over 4,096 points subsampled at random, without the 4 mm
+    # grid that first keeps a point in every occupied cell (`Stage1Config.obstacle_voxel`).
+    "obstacles-random": {"stage1": {"obstacle_voxel": 0.0}},
     # ... and a perturbed pose that meets a neighbour's fitted superquadric counts 0 (`RobustChoice.fits`).
     "robust-fits": {"planner": {"robust": RobustChoice(fits=True)}},
 }

@@ -9,6 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import trimesh
+from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from sgjax.stage1.filters import (
@@ -832,3 +833,34 @@ def test_table_points_leave_the_obstacles_when_the_plane_is_given(stage):
     assert planed.counts.get("collision_scene", 0) == 0 and planed.counts["below_support"] > 0
     tips = planed.poses[:, :3, 3] + SPEC.finger_length * planed.poses[:, :3, 2]
     assert len(planed) > 0 and np.all(tips[:, 2] >= FilterConfig().support_clearance - 1e-4)
+
+
+def test_obstacle_voxel_grid_keeps_every_occupied_cell_of_a_dense_crop(stage):
+    # A 20-object scene's obstacle crop holds far more camera points than max_scene_points; a random
+    # subset of them loses whole small regions (a neighbour's sliver between the fingers), a voxel grid
+    # first keeps one point in each occupied cell.
+    cloud, _ = single_view(Primitive("cuboid", (0.06, 0.04, 0.03)))
+    rng = np.random.default_rng(0)
+    wall = np.stack([np.full(24000, 0.16), rng.uniform(-0.08, 0.08, 24000), rng.uniform(0.01, 0.12, 24000)], 1)
+    sliver = np.array([0.055, 0.0, 0.02]) + rng.normal(0, 0.0005, (5, 3))  # 5 points next to the box's side
+    obstacles = np.concatenate([wall, sliver])
+    plane = np.array([0.0, 0.0, 1.0, 0.0])
+    voxel = 0.004
+    gridded, randomly = (Stage1(stage.db, dataclasses.replace(stage.config, obstacle_voxel=v), share=stage) for v in (voxel, 0.0))
+
+    def distances_to_crop(crop_stage):
+        points, mask = crop_stage._crop_scene(obstacles, cloud, 0, plane)
+        assert mask.sum() <= crop_stage.config.max_scene_points
+        dist = cKDTree(points[mask]).query(obstacles)[0]
+        return dist, int(mask.sum())
+
+    dist, kept = distances_to_crop(gridded)
+    # Each obstacle point has a kept point in its own voxel, and the sliver is among them.
+    assert np.all(dist <= voxel * np.sqrt(3) + 1e-6) and kept < 4096
+    dist, kept = distances_to_crop(randomly)
+    assert kept == 4096 and dist[-5:].min() > voxel  # the random subset dropped all 5 sliver points
+    # A crop within max_scene_points is kept whole, exact for filter (iv).
+    points, mask = gridded._crop_scene(obstacles[-600:], cloud, 0, plane)
+    assert mask.sum() == 600 and np.allclose(np.sort(points[mask], 0), np.sort(obstacles[-600:], 0))
+    with pytest.raises(ValueError, match="obstacle_voxel"):
+        Stage1Config(obstacle_voxel=-0.001)
