@@ -44,6 +44,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from envs import gripper_model
+from envs.outcome import Outcome  # noqa: F401  (re-exported: envs.rollout.Outcome)
 from envs import scene as scene_lib
 from sgjax.geometry.gripper import GripperSpec, check_width
 
@@ -56,16 +57,6 @@ class Phase(enum.IntEnum):
     REORIENT = 4
     HOLD = 5
     DISTURB = 6
-
-
-class Outcome(enum.IntEnum):
-    SUCCESS = 0
-    COLLISION_PREGRASP = 1
-    COLLISION_APPROACH = 2
-    DROPPED_LIFT = 3
-    DROPPED_REORIENT = 4
-    DROPPED_DISTURBANCE = 5
-    INVALID = 6
 
 
 @dataclasses.dataclass(frozen=True)

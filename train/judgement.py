@@ -14,7 +14,7 @@ Computed by `sgjax train` on the held-out scenes and the held-out objects after 
   random_success      per scene, a Stage-1 grasp picked at random: the expected share that succeed
   top1_scenes, top1_per_scene   the scenes behind both, and the mean Stage-1 samples competing per scene
   top1_outcomes       (with `outcome`) per scene, the top Stage-1 grasp's trial outcome: {name: scenes}
-                      (`envs.rollout.Outcome` names, lower case), so a miss reads as a drop or a collision
+                      (`envs.outcome.Outcome` names, lower case), so a miss reads as a drop or a collision
   mean_score / positive_rate: the scorer's mean against the actual success rate
   auc_interval, top1_interval   (with `resamples` > 0) 95 % intervals of auc and top1_success by
                       resampling scenes with replacement (samples of a scene are not independent)
@@ -26,7 +26,7 @@ from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
 
-from envs.rollout import Outcome
+from envs.outcome import Outcome
 
 COLLISIONS = (Outcome.COLLISION_PREGRASP, Outcome.COLLISION_APPROACH)
 
