@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
@@ -114,3 +118,23 @@ def test_report_names_how_the_top_picks_failed():
     assert text.splitlines()[-1] == "Where it failed, its trial ended: collision_approach 1, dropped_disturbance 1 (scenes)."
     text = report_table(judge(score, np.ones(6, int), outcome=np.zeros(6, int), scene=scene, source=np.zeros(6, int)))
     assert "Where it failed" not in text  # no miss, no line
+
+
+def test_training_and_its_judgement_import_without_mujoco():
+    # A GPU box that trains but does not simulate may lack MuJoCo: the trainer and the judgement name
+    # trial outcomes from envs.outcome, not from the simulator's modules.
+    code = (
+        "import sys\n"
+        "class Block:\n"
+        "    def find_spec(self, name, path=None, target=None):\n"
+        "        if name == 'mujoco' or name.startswith('mujoco.'):\n"
+        "            raise ImportError('mujoco blocked')\n"
+        "sys.meta_path.insert(0, Block())\n"
+        "import train.trainer, train.judgement\n"
+        "from envs.outcome import Outcome\n"
+        "assert train.judgement.COLLISIONS == (Outcome.COLLISION_PREGRASP, Outcome.COLLISION_APPROACH)\n"
+        "assert 'mujoco' not in sys.modules\n"
+    )
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    done = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
