@@ -44,7 +44,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from envs import gripper_model
-from envs.outcome import Outcome  # noqa: F401  (re-exported: envs.rollout.Outcome)
+from envs.outcome import Outcome
 from envs import scene as scene_lib
 from sgjax.geometry.gripper import GripperSpec, check_width
 

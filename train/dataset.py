@@ -19,7 +19,7 @@ One sample = one executed grasp (paper Sec. IV-C). Two formats:
     object_name    str            the target object
     valid          bool[]         False: the trial could not be run (excluded from training)
     source         int8[]         candidate source (`train.sources.SOURCES` index)
-    outcome        int8[]         the initial grasp's trial outcome (`envs.rollout.Outcome`)
+    outcome        int8[]         the initial grasp's trial outcome (`envs.outcome.Outcome`)
     held_out_object bool[]        the target is a held-out object (never trained on)
 
 A shard (compressed .npz) stores each field stacked over its samples ([S, ...]); `object_name` as a

@@ -44,7 +44,7 @@ import numpy as np
 
 from envs import camera as camera_lib
 from envs import scene as scene_lib
-from envs.rollout import Outcome
+from envs.outcome import Outcome
 from envs.trial import TrialConfig, check_backend, run_grasp_with_refinements
 from sgjax.geometry.gripper import GripperSpec
 from sgjax.samplers.gpd import GPDConfig

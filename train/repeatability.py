@@ -18,7 +18,7 @@ import os
 
 import numpy as np
 
-from envs.rollout import Outcome
+from envs.outcome import Outcome
 from envs.trial import run_trials
 from train import dataset, sources
 from train.label import labelled_scene, prepare_objects, read_config
