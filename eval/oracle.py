@@ -19,7 +19,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from envs import simple_grasps
-from sgjax.samplers.gpd import swept_hits, voxel_downsample
+from sgjax.samplers.gpd import swept_hits, first_per_voxel
 from eval.protocol import Decision, near_grasps
 
 
@@ -82,7 +82,7 @@ class OracleTopDown:
         seen = [int(i) for i in np.unique(labels[labels >= 0]) if scene.present[i]]
         seen.sort(key=lambda i: -simple_grasps.object_vertices(scene, i)[:, 2].max())  # highest first
         cloud = points[labels >= 0]
-        cloud = jnp.asarray(cloud[voxel_downsample(cloud, self.voxel_size)])
+        cloud = jnp.asarray(cloud[first_per_voxel(cloud, self.voxel_size)])
         free = []  # (object, pose, width) of the collision-free grasps
         tried = 0
         for index in seen:

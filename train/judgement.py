@@ -196,17 +196,18 @@ def judge(
         out["collision_score"] = float(score[collided].mean()) if collided.any() else None
     if scene is not None:
         rows = np.ones(len(score), bool) if top_source is None or source is None else source == top_source
-        out["top1_success"] = top_success(score[rows], label[rows], np.asarray(scene)[rows])
-        out["random_success"] = random_success(label[rows], np.asarray(scene)[rows])
+        top_score, top_label, top_scene = score[rows], label[rows], np.asarray(scene)[rows]
+        out["top1_success"] = top_success(top_score, top_label, top_scene)
+        out["random_success"] = random_success(top_label, top_scene)
         # How many grasps compete per scene: the top pick's success rises with it (docs/stage2.md).
-        competing = np.unique(np.asarray(scene)[rows], return_counts=True)[1]
+        competing = np.unique(top_scene, return_counts=True)[1]
         out["top1_scenes"] = int(len(competing))
         out["top1_per_scene"] = float(competing.mean()) if len(competing) else None
         if outcome is not None:
-            out["top1_outcomes"] = top_outcomes(score[rows], np.asarray(outcome)[rows], np.asarray(scene)[rows])
+            out["top1_outcomes"] = top_outcomes(top_score, np.asarray(outcome)[rows], top_scene)
         if resamples > 0:
             out["auc_interval"] = scene_interval(lambda s, y, g: roc_auc(s, y), score, label, scene, resamples)
-            out["top1_interval"] = scene_interval(top_success, score[rows], label[rows], np.asarray(scene)[rows], resamples)
+            out["top1_interval"] = scene_interval(top_success, top_score, top_label, top_scene, resamples)
     if refine_score is not None and refine_label is not None:
         refine_score, refine_label = np.asarray(refine_score), np.asarray(refine_label)
         out["refine_auc"] = [roc_auc(refine_score[:, k], refine_label[:, k]) for k in range(refine_score.shape[1])]

@@ -91,8 +91,12 @@ class GPDConfig:
 # Host side: the cloud.
 
 
-def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
-    """Indices of one point per occupied voxel (the first in input order), sorted: [N, 3] -> [V]."""
+def first_per_voxel(points: np.ndarray, voxel: float) -> np.ndarray:
+    """Indices of one point per occupied voxel (the first in input order), sorted: [N, 3] -> [V].
+
+    Not `pointcloud.voxel_downsample` (the point nearest each voxel's centre): GPD's sampler and the
+    oracle index other per-point arrays with these, and changing which point a voxel keeps would
+    change the baselines' candidates."""
     if len(points) == 0:
         return np.zeros(0, np.int64)
     keys = np.floor(np.asarray(points, np.float64) / voxel).astype(np.int64)
@@ -124,7 +128,7 @@ def prepare_labelled_cloud(
     table_z = float(np.median(points[table, 2])) if table.any() else -np.inf
     keep = finite & (labels >= 0)
     obj, obj_labels = points[keep], labels[keep]
-    first = voxel_downsample(obj, config.voxel_size)
+    first = first_per_voxel(obj, config.voxel_size)
     obj, obj_labels = obj[first], obj_labels[first]
     if len(obj) > config.max_points:
         pick = np.sort(np.random.default_rng(seed).choice(len(obj), config.max_points, replace=False))
