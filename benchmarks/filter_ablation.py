@@ -193,6 +193,7 @@ def main() -> None:
     parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
     parser.add_argument("--out", default="filter_ablation_out")
     parser.add_argument("--model", help="E-RNet run directory (default: the shipped checkpoint)")
+    parser.add_argument("--judge", help="a second E-RNet run directory that makes the robust choice (Planner(judge=))")
     parser.add_argument("--method", default="supergrasp", choices=["supergrasp", "supergrasp-norefine"])
     parser.add_argument("--reuse", help="for the variants that add a second plan to the default filters (default, "
                         "fallback-*): the output folder of a run without it (the no-fallback variant, or `sgjax "
@@ -202,7 +203,7 @@ def main() -> None:
 
     rows = []
     for name in args.variants:
-        options = {"model": args.model, "config": variant_config(name)}
+        options = {"model": args.model, "config": variant_config(name), **({"judge": args.judge} if args.judge else {})}
         method = make_method(args.method, **options)
         if args.reuse and differs_only_by_fallback(name):
             copied = reuse_unaffected(args.reuse, f"{args.out}/{name}", args.setting, args.scenes, args.seed,

@@ -68,16 +68,16 @@ def _oracle(**options) -> Method:
 
 
 def _supergrasp(use_refinement: bool) -> Callable[..., Method]:
-    def factory(model=None, small_db: bool = False, db=None, config=None) -> Method:
+    def factory(model=None, small_db: bool = False, db=None, config=None, judge=None) -> Method:
         from eval.supergrasp import PlannerMethod
 
         name = "supergrasp" if use_refinement else "supergrasp-norefine"
-        return PlannerMethod(name, use_refinement, model=model, small_db=small_db, db=db, config=config)
+        return PlannerMethod(name, use_refinement, model=model, small_db=small_db, db=db, config=config, judge=judge)
 
     return factory
 
 
-_PLANNER_OPTIONS = ("model", "small_db", "db", "config")
+_PLANNER_OPTIONS = ("model", "small_db", "db", "config", "judge")
 
 
 def _pointnetgpd(generator: str) -> Callable[..., Method]:

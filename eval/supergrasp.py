@@ -2,7 +2,8 @@
 
 The planner is imported lazily, so the rest of the benchmark works without it. Options pass through:
 `model` (an ERNet, a `sgjax train` run directory, or None for the planner's default checkpoint),
-`small_db` (the small primitive database, for tests and smoke runs), `db` (a PrimitiveDB), `config`
+`judge` (a second E-RNet that makes the robust choice, `Planner(judge=)`), `small_db` (the small
+primitive database, for tests and smoke runs), `db` (a PrimitiveDB), `config`
 (a PlannerConfig; its `use_refinement` is set by the method's name; by default the Stage-2 scene cloud
 is cropped to the workspace and voxelised exactly as the labelling pipeline did for training).
 
@@ -27,7 +28,8 @@ TIMING_KEYS = ("stage1_s", "stage2_s", "total_s")
 class PlannerMethod:
     """A `Method` over `sgjax.planner.Planner` (with or without the refinement branch)."""
 
-    def __init__(self, name: str, use_refinement: bool, model=None, small_db: bool = False, db=None, config=None):
+    def __init__(self, name: str, use_refinement: bool, model=None, small_db: bool = False, db=None, config=None,
+                 judge=None):
         from sgjax.planner import Planner, PlannerConfig
 
         if db is None and small_db:
@@ -40,7 +42,7 @@ class PlannerMethod:
             config = PlannerConfig(scene_cloud=stage2_scene_cloud())
         self.config = dataclasses.replace(config, use_refinement=use_refinement)
         self.name = name
-        self.planner = Planner(model=model, db=db, config=self.config)
+        self.planner = Planner(model=model, db=db, config=self.config, judge=judge)
         # Stage 1 of an object whose cloud has not changed since the scene's last plan is not run again
         # (`sgjax.stage1.memory`); the harness starts each scene with `begin_scene`.
         self.memory = Stage1Memory()

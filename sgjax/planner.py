@@ -607,12 +607,26 @@ class Planner:
 
     model: an ERNet, a `sgjax train` run directory, or None (the shipped default, `ernet.load_default_model`);
     db: a PrimitiveDB, or None (the default database from the cache, built on first use).
+    judge: None, or a second ERNet (or run directory) that makes the robust choice (`PlannerConfig.robust`,
+        required): `model` scores every candidate, and among its `robust.top` best the judge's mean score
+        at the candidate's own pose and its perturbed ones picks the grasp. Why: a network too slow to
+        score hundreds of candidates on a CPU (the paper-size E-RNet) can judge a dozen finalists.
     """
 
-    def __init__(self, model=None, db: PrimitiveDB | None = None, config: PlannerConfig = PlannerConfig()):
+    def __init__(self, model=None, db: PrimitiveDB | None = None, config: PlannerConfig = PlannerConfig(), judge=None):
         enable_compilation_cache()  # a new process loads what an earlier one compiled
         self.model = ernet.as_model(model)
         self.config = config
+        self.judge = None
+        if judge is not None:
+            if config.robust is None:
+                raise ValueError("a judge network makes the robust choice: PlannerConfig.robust must not be None")
+            if config.robust.top * (PERTURBATIONS + 1) > config.max_stage2_candidates:
+                raise ValueError(f"robust.top x {PERTURBATIONS + 1} judged poses exceed max_stage2_candidates "
+                                 f"{config.max_stage2_candidates}")
+            self.judge = ernet.as_model(judge)
+            graphdef, state = nnx.split(self.judge)
+            self._judge_network = (graphdef, jax.device_put(state, jax.devices()[0]))
         if self.model.config.n_refinements != config.spec.num_refinements:
             raise ValueError(
                 f"the E-RNet predicts {self.model.config.n_refinements} refinements but the gripper spec has "
@@ -852,6 +866,13 @@ class Planner:
                 if cfg.use_refinement:  # the host-side decision of re-scored or rejected refinements, per size
                     self._decide(np.zeros(size, np.float32), np.zeros((size, cfg.spec.num_refinements), np.float32),
                                  np.zeros(size, bool))
+            if self.judge is not None:  # the judge network's sizes, up to its largest robust call
+                largest = cfg.stage2_slots(cfg.robust.top * (PERTURBATIONS + 1))
+                for size in (s for s in cfg.stage2_sizes if s <= largest):
+                    empty = padded_batch(np.zeros((0, 4, 4), np.float32), np.zeros(0, np.float32), size)
+                    args = (scene_pad, scene_mask, *empty, np.zeros(size, bool), seed, thresholds)
+                    if not exported.ready("stage2", *self._stage2_call(*args, judge=True)[1:]):
+                        self._score(*args, judge=True)
             self._stage2_ready = True
         out, choice = self._score(scene_pad, scene_mask, poses, widths, np.arange(slots) < m, seed, thresholds)
         t2 = time.perf_counter()
@@ -942,23 +963,29 @@ class Planner:
         cfg = self.config
         test_fits = cfg.robust.fits and fitted is not None
 
+        own = self.judge is None  # with a judge network, it also scores the candidate's own pose
+        per = PERTURBATIONS + (0 if own else 1)
+
         def judge(index):
             perturbed = np.asarray(gripper.perturbed_poses(poses[index], cfg.robust.shift, cfg.robust.angle_deg), np.float32)
-            n = perturbed.shape[0] * PERTURBATIONS
+            if not own:
+                perturbed = np.concatenate([np.asarray(poses[index], np.float32)[:, None], perturbed], axis=1)
+            n = perturbed.shape[0] * per
             slots = cfg.stage2_slots(n)  # a Stage-2 batch size, so that no plan compiles
-            pad_poses, pad_widths = padded_batch(perturbed.reshape(n, 4, 4), np.repeat(widths[index], PERTURBATIONS), slots)
-            out, _ = self._score(scene_pad, scene_mask, pad_poses, pad_widths, np.arange(slots) < n, seed, thresholds)
+            pad_poses, pad_widths = padded_batch(perturbed.reshape(n, 4, 4), np.repeat(widths[index], per), slots)
+            out, _ = self._score(scene_pad, scene_mask, pad_poses, pad_widths, np.arange(slots) < n, seed, thresholds,
+                                 judge=not own)
             judged = np.where(out["valid"][:n], out["eval_prob"][:n], 0.0)
             if test_fits:
                 fits, mask, pairs = fitted
-                owner = np.repeat(np.asarray(scores["object"], np.int32)[index], PERTURBATIONS)
+                owner = np.repeat(np.asarray(scores["object"], np.int32)[index], per)
                 hits = neighbours.fit_hits(pad_poses[:n], pad_widths[:n], owner, fits, mask, cfg.spec,
                                            cfg.neighbour_fits, sweep, cfg.stage2_sizes, pairs)
                 judged = np.where(hits, 0.0, judged)
-            return judged.reshape(-1, PERTURBATIONS)
+            return judged.reshape(-1, per)
 
         valid = scores["valid"] if allowed is None else scores["valid"] & allowed
-        scores["robust_score"] = robust_scores(scores["eval_prob"], valid, cfg.eval_threshold, cfg.robust.top, judge)
+        scores["robust_score"] = robust_scores(scores["eval_prob"], valid, cfg.eval_threshold, cfg.robust.top, judge, own)
         return robust_choice(choice, scores)
 
     def _decide(self, eval_prob: np.ndarray, refine_score: np.ndarray, valid: np.ndarray) -> dict:
@@ -1009,20 +1036,22 @@ class Planner:
         refine_score = scores.get("refine_score", scores["refine_prob"])
         return collision_free(choice, scores["eval_prob"], refine_score, scores["valid"], collides, self._decide)
 
-    def _stage2_call(self, scene_pad, scene_mask, poses, widths, slots, seed: int, thresholds):
-        """(function, arguments, static key) of one Stage-2 call, for `exported.call` / `exported.ready`."""
+    def _stage2_call(self, scene_pad, scene_mask, poses, widths, slots, seed: int, thresholds, judge: bool = False):
+        """(function, arguments, static key) of one Stage-2 call, for `exported.call` / `exported.ready`;
+        judge: with the judge network instead of the model."""
         cfg = self.config
+        model, (graphdef, state) = (self.judge, self._judge_network) if judge else (self.model, (self.graphdef, self.state))
         return (
-            functools.partial(_stage2, self.graphdef, spec=cfg.spec),
-            (self.state, scene_pad, scene_mask, poses, widths, slots, jax.random.key(seed), thresholds,
+            functools.partial(_stage2, graphdef, spec=cfg.spec),
+            (state, scene_pad, scene_mask, poses, widths, slots, jax.random.key(seed), thresholds,
              np.bool_(cfg.use_refinement)),
-            (type(self.model).__qualname__, repr(self.model.config), cfg.spec),
+            (type(model).__qualname__, repr(model.config), cfg.spec),
         )
 
-    def _score(self, scene_pad, scene_mask, poses, widths, slots, seed: int, thresholds):
+    def _score(self, scene_pad, scene_mask, poses, widths, slots, seed: int, thresholds, judge: bool = False):
         """One Stage-2 call (`_stage2`) -> (scores, choice) as NumPy. Exported once to the cache, keyed by
-        the network's class and config (which fix its graphdef)."""
-        fn, args, static = self._stage2_call(scene_pad, scene_mask, poses, widths, slots, seed, thresholds)
+        the network's class and config (which fix its graphdef). judge: with the judge network."""
+        fn, args, static = self._stage2_call(scene_pad, scene_mask, poses, widths, slots, seed, thresholds, judge)
         return jax.tree.map(np.asarray, exported.call("stage2", fn, args, static))
 
     def _why_not(self, scores: dict, m: int, rejected: int = 0) -> str:
@@ -1059,19 +1088,20 @@ def prefer_short_lever(choice: dict, scores: dict, poses: np.ndarray, centroids:
     return {**choice, "index": np.int32(index), "score": np.float32(e[index])}
 
 
-def robust_scores(eval_prob, valid, threshold: float, top: int, judge) -> np.ndarray:
+def robust_scores(eval_prob, valid, threshold: float, top: int, judge, own: bool = True) -> np.ndarray:
     """`PlannerConfig.robust`'s scores: the `top` best-evaluated valid candidates with eval_prob above
     `threshold` (eval_prob [M], valid [M]), each judged at its perturbed poses by `judge(index [t])` ->
     [t, P] (the evaluation head's scores there, 0 where it cannot judge) -> [M]: the mean of the
-    candidate's own score and its P perturbed ones, NaN where not judged (all NaN when fewer than two
-    candidates pass: nothing to compare)."""
+    candidate's own score and its P perturbed ones (own False: of the P judged scores alone, e.g. a
+    judge network's, which scores the own pose among them), NaN where not judged (all NaN when fewer
+    than two candidates pass: nothing to compare)."""
     e = np.asarray(eval_prob, np.float32)
     passing = np.flatnonzero(passing_mask(e, valid, threshold))
     index = passing[np.argsort(-e[passing], kind="stable")][:top]
     robust = np.full(len(e), np.nan, np.float32)
     if len(index) >= 2:
         judged = np.asarray(judge(index), np.float32)
-        robust[index] = (e[index] + judged.sum(axis=1)) / (1 + judged.shape[1])
+        robust[index] = (e[index] + judged.sum(axis=1)) / (1 + judged.shape[1]) if own else judged.mean(axis=1)
     return robust
 
 

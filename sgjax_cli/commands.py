@@ -438,6 +438,8 @@ def _cmd_declutter(args: argparse.Namespace) -> int:
     from eval.report import percent
 
     options = {"model": args.model, "small_db": args.small_db}
+    if args.judge:
+        options["judge"] = args.judge
     try:
         result = run_benchmark(
             args.method,
@@ -706,6 +708,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--model", metavar="RUN_DIR",
         help="the method's network run directory: E-RNet (supergrasp*, gpd+s2) or PointNetGPD (*pointnetgpd)",
+    )
+    p.add_argument(
+        "--judge", metavar="RUN_DIR",
+        help="supergrasp*: a second E-RNet run that makes the robust choice among the model's finalists "
+             "(`Planner(judge=)`, e.g. a paper-size network)",
     )
     p.add_argument("--small-db", action="store_true", help="the small primitive database (Stage-1 methods; tests)")
     p.add_argument("--backend", default="cpu", help=BACKEND_HELP)

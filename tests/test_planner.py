@@ -692,9 +692,12 @@ def test_robust_scores_judge_only_the_best_passing_candidates():
     choice = {"index": np.int32(0), "kind": np.int32(1), "variant": np.int32(-1), "score": np.float32(0.95), "pose": None}
     out = planner_mod.robust_choice(choice, {"eval_prob": eval_prob, "robust_score": robust})
     assert int(out["index"]) == 2 and out["score"] == pytest.approx(0.9)
+    # own=False (a judge network's scores, the own pose among them): the mean of the judged scores alone.
+    alone_mean = planner_mod.robust_scores(eval_prob, valid, 0.7, 2, judge, own=False)
+    np.testing.assert_allclose(alone_mean[[0, 2]], [0.2, 0.9], atol=1e-6)
     # One passing candidate: nothing to compare, nothing judged, the choice stands.
     alone = planner_mod.robust_scores(eval_prob, valid & (np.arange(6) == 0), 0.7, 4, judge)
-    assert np.isnan(alone).all() and len(asked) == 1
+    assert np.isnan(alone).all() and len(asked) == 2
     assert planner_mod.robust_choice(choice, {"eval_prob": eval_prob, "robust_score": alone}) is choice
 
 
@@ -720,6 +723,37 @@ def test_robust_choice_in_the_planner_is_judged_by_ernet_at_the_perturbed_poses(
     np.testing.assert_allclose(s["robust_score"][judged], (s["eval_prob"][judged] + around.sum(1)) / 6, atol=2e-5)
     assert plan.kind == "evaluated" and plan.candidate_index == judged[np.argmax(s["robust_score"][judged])]
     assert plan.score == pytest.approx(float(s["eval_prob"][plan.candidate_index]))
+
+
+def test_a_judge_network_makes_the_robust_choice_among_the_models_finalists(small_db, scene):
+    """`Planner(judge=)`: the model scores every candidate and picks the finalists (its best passing ones);
+    their robust scores are the judge's mean scores at each one's own pose and its `perturbed_poses`
+    (the judge called directly), and the plan executes the highest. A judge without the robust choice
+    is refused."""
+    model, judge = ERNet(TINY, rngs=nnx.Rngs(3)), ERNet(TINY, rngs=nnx.Rngs(11))
+    config = dataclasses.replace(CONFIG, eval_threshold=0.0, robust=planner_mod.RobustChoice(top=4))
+    planner = Planner(model, small_db, config, judge=judge)
+    plan = planner.plan(*scene, viewpoint=CAMERA, seed=0)
+    s = plan.scores
+    judged = np.flatnonzero(np.isfinite(s["robust_score"]))
+    e = np.where(s["valid"], s["eval_prob"], -np.inf)
+    np.testing.assert_array_equal(np.sort(judged), np.sort(np.argsort(-e, kind="stable")[:4]))  # the model's best
+    poses = np.stack([plan.candidates[o].poses[r] for o, r in zip(s["object"], s["object_candidate"])]).astype(np.float32)
+    widths = np.array([plan.candidates[o].widths[r] for o, r in zip(s["object"], s["object_candidate"])], np.float32)
+    around = np.concatenate([poses[judged][:, None], np.asarray(gripper_mod.perturbed_poses(poses[judged], 0.005, 10.0))], 1)
+    scene_pad, scene_mask = planner._scene(scene[0], 0)
+    expected = {}
+    for name, net in (("judge", judge), ("model", model)):
+        graphdef, state = nnx.split(net)
+        out = ernet.score(graphdef, state, scene_pad, around.reshape(-1, 4, 4), np.repeat(widths[judged], 6), scene_mask,
+                          spec=SPEC, key=jax.random.key(0))
+        expected[name] = np.where(out.valid, out.eval_prob, 0.0).reshape(-1, 6).mean(1)
+    np.testing.assert_allclose(s["robust_score"][judged], expected["judge"], atol=2e-5)
+    assert np.abs(expected["judge"] - expected["model"]).max() > 1e-3  # the two networks do judge differently
+    assert plan.kind == "evaluated" and plan.candidate_index == judged[np.argmax(s["robust_score"][judged])]
+    assert plan.score == pytest.approx(float(s["eval_prob"][plan.candidate_index]))  # the model's evaluation
+    with pytest.raises(ValueError, match="robust must not be None"):
+        Planner(model, small_db, CONFIG, judge=judge)
 
 
 def test_robust_choice_counts_perturbed_poses_that_meet_a_neighbours_fit_as_zero(small_db):
