@@ -391,7 +391,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
         from sgjax.planner import Planner
 
         db = load_database_file(args.db) if args.db else load_database(DBConfig.small() if args.small_db else DBConfig())
-        planner = Planner(model=args.model, db=db)
+        planner = Planner(model=args.model, db=db, judge=args.judge)
         viewpoint = (0.0, 0.0, 0.0) if args.viewpoint is None else tuple(args.viewpoint)
         if mask.dtype == bool:
             plan = planner.plan_masked(cloud, mask, viewpoint, seed=args.seed)
@@ -547,6 +547,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--viewpoint", type=float, nargs=3, metavar=("X", "Y", "Z"), help="camera position (default: origin)")
     p.add_argument("--model", metavar="RUN_DIR", help="an E-RNet `sgjax train` run directory (default: the shipped model)")
+    p.add_argument("--judge", metavar="RUN_DIR",
+                   help="a second E-RNet run that makes the robust choice among the model's finalists (Planner(judge=))")
     p.add_argument("--db", help="a primitive database file (default: the cached default database)")
     p.add_argument("--small-db", action="store_true", help="use the small database (built in seconds)")
     p.add_argument("--json", action="store_true", help="print the plan as JSON")

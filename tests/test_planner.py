@@ -527,6 +527,9 @@ def test_cli_plan(tmp_path, capsys, monkeypatch, small_db):
     assert main(["plan", *base, "--mask", str(tmp_path / "mask.npy")]) == 0
     out = capsys.readouterr().out
     assert "evaluated grasp" in out and "stage 1" in out
+    # A judge run that does not exist is named, not a crash deep inside the planner.
+    assert main(["plan", *base, "--mask", str(tmp_path / "labels.npy"), "--judge", str(tmp_path / "no_run")]) == 2
+    assert "no_run" in capsys.readouterr().err
 
     np.save(tmp_path / "short.npy", labels[:-3])
     assert main(["plan", *base, "--mask", str(tmp_path / "short.npy")]) == 2
