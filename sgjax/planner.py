@@ -607,10 +607,13 @@ class Planner:
 
     model: an ERNet, a `sgjax train` run directory, or None (the shipped default, `ernet.load_default_model`);
     db: a PrimitiveDB, or None (the default database from the cache, built on first use).
-    judge: None, or a second ERNet (or run directory) that makes the robust choice (`PlannerConfig.robust`,
-        required): `model` scores every candidate, and among its `robust.top` best the judge's mean score
-        at the candidate's own pose and its perturbed ones picks the grasp. Why: a network too slow to
-        score hundreds of candidates on a CPU (the paper-size E-RNet) can judge a dozen finalists.
+    judge: None, "paper" (the shipped paper-size E-RNet, `ernet.load_paper_model`), or a second ERNet or
+        run directory, that makes the robust choice (`PlannerConfig.robust`, required): `model` scores
+        every candidate, and among its `robust.top` best the judge's mean score at the candidate's own
+        pose and its perturbed ones picks the grasp. Why: a network too slow to score hundreds of
+        candidates on a CPU (the paper-size E-RNet: seconds per 512) judges a dozen finalists in one
+        call of 72 rows; in dense clutter of unseen objects it lowered the failed grasps
+        (docs/stage2.md, "The paper-size E-RNet as a judge").
     """
 
     def __init__(self, model=None, db: PrimitiveDB | None = None, config: PlannerConfig = PlannerConfig(), judge=None):
@@ -624,7 +627,7 @@ class Planner:
             if config.robust.top * (PERTURBATIONS + 1) > config.max_stage2_candidates:
                 raise ValueError(f"robust.top x {PERTURBATIONS + 1} judged poses exceed max_stage2_candidates "
                                  f"{config.max_stage2_candidates}")
-            self.judge = ernet.as_model(judge)
+            self.judge = ernet.as_judge(judge)
             graphdef, state = nnx.split(self.judge)
             self._judge_network = (graphdef, jax.device_put(state, jax.devices()[0]))
         if self.model.config.n_refinements != config.spec.num_refinements:

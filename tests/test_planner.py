@@ -482,6 +482,18 @@ def test_missing_default_model_says_how_to_make_one(tmp_path, monkeypatch):
         ernet.load_default_model()
 
 
+def test_shipped_paper_judge_is_the_paper_size_network(tmp_path, monkeypatch):
+    """`as_judge("paper")`: the shipped paper-size E-RNet (960 / 345 points, FPS, the swept input the
+    planner crops for its default model); None stays no judge; a missing checkpoint names its path."""
+    judge = ernet.as_judge(ernet.PAPER_JUDGE)
+    paper = ernet.ERNetConfig.paper(hand_points=judge.config.hand_points)
+    assert judge.config == paper and judge.config.hand_points == ernet.load_default_model().config.hand_points > 0
+    assert ernet.as_judge(None) is None
+    monkeypatch.setattr(checkpoint, "ERNET_PAPER_DIR", tmp_path / "ernet_paper")
+    with pytest.raises(FileNotFoundError, match="ernet_paper.*sgjax train --model paper"):
+        ernet.load_paper_model()
+
+
 # ---------------------------------------------------------------------------------------------
 # Command line.
 
