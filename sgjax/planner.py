@@ -612,8 +612,8 @@ class Planner:
         every candidate, and among its `robust.top` best the judge's mean score at the candidate's own
         pose and its perturbed ones picks the grasp. Why: a network too slow to score hundreds of
         candidates on a CPU (the paper-size E-RNet: seconds per 512) judges a dozen finalists in one
-        call of 72 rows; in dense clutter of unseen objects it lowered the failed grasps
-        (docs/stage2.md, "The paper-size E-RNet as a judge").
+        call of 72 rows. Measured in dense clutter of unseen objects: more objects removed, GSR no
+        better (docs/benchmark.md, "The paper-size E-RNet as a judge"), so None is the default.
     """
 
     def __init__(self, model=None, db: PrimitiveDB | None = None, config: PlannerConfig = PlannerConfig(), judge=None):
@@ -859,23 +859,19 @@ class Planner:
         scene_pad, scene_mask = self._scene(scene, seed)
         thresholds = np.array([cfg.eval_threshold, cfg.refine_threshold], np.float32)
         if not self._stage2_ready:  # compile every batch size now, so that no later plan stalls
+            # The judge network's sizes too, up to its largest robust call.
+            largest = 0 if self.judge is None else cfg.stage2_slots(cfg.robust.top * (PERTURBATIONS + 1))
             for size in cfg.stage2_sizes:
                 empty = padded_batch(np.zeros((0, 4, 4), np.float32), np.zeros(0, np.float32), size)
                 args = (scene_pad, scene_mask, *empty, np.zeros(size, bool), seed, thresholds)
                 # A size already exported to the cache is only loaded (~0.3 s) when first used: a warm
                 # process's first plan then loads one Stage-2 program, not all of them.
-                if size != slots and not exported.ready("stage2", *self._stage2_call(*args)[1:]):
-                    self._score(*args)
+                for judge in (False, True) if size <= largest else (False,):
+                    if (judge or size != slots) and not exported.ready("stage2", *self._stage2_call(*args, judge)[1:]):
+                        self._score(*args, judge)
                 if cfg.use_refinement:  # the host-side decision of re-scored or rejected refinements, per size
                     self._decide(np.zeros(size, np.float32), np.zeros((size, cfg.spec.num_refinements), np.float32),
                                  np.zeros(size, bool))
-            if self.judge is not None:  # the judge network's sizes, up to its largest robust call
-                largest = cfg.stage2_slots(cfg.robust.top * (PERTURBATIONS + 1))
-                for size in (s for s in cfg.stage2_sizes if s <= largest):
-                    empty = padded_batch(np.zeros((0, 4, 4), np.float32), np.zeros(0, np.float32), size)
-                    args = (scene_pad, scene_mask, *empty, np.zeros(size, bool), seed, thresholds)
-                    if not exported.ready("stage2", *self._stage2_call(*args, judge=True)[1:]):
-                        self._score(*args, judge=True)
             self._stage2_ready = True
         out, choice = self._score(scene_pad, scene_mask, poses, widths, np.arange(slots) < m, seed, thresholds)
         t2 = time.perf_counter()
