@@ -89,6 +89,16 @@ def _seen_in_hand(obs, target: int, pose: np.ndarray, width: float, spec: Grippe
     return int((inside & (labels >= 0) & (labels != target)).sum()), int((inside & (labels < 0)).sum())
 
 
+def logged_scene(log: dict, objects: Sequence, config: DeclutterConfig) -> scene_lib.Scene:
+    """The scene of log `log` as the run began (settled), from `objects`; ValueError when it holds
+    other objects than the log names (not the log's object set or meshes)."""
+    scene = make_benchmark_scene(objects, int(log["n_objects"]), int(log["seed"]), int(log["scene_index"]), config)
+    names = [scene.assets[i].name for i in np.flatnonzero(scene.present)]
+    if names != list(log["object_names"]):
+        raise ValueError(f"scene {log['scene_index']} holds other objects than its log: not the log's object set or meshes")
+    return scene
+
+
 def replay_scene(
     log: dict,
     objects: Sequence,
@@ -102,10 +112,7 @@ def replay_scene(
     """
     config = config or DeclutterConfig()
     spec = config.gripper
-    scene = make_benchmark_scene(objects, int(log["n_objects"]), int(log["seed"]), int(log["scene_index"]), config)
-    names = [scene.assets[i].name for i in np.flatnonzero(scene.present)]
-    if names != list(log["object_names"]):
-        raise ValueError(f"scene {log['scene_index']} holds other objects than its log: not the log's object set or meshes")
+    scene = logged_scene(log, objects, config)
     other_scene = None
     out = []
     for record in log["attempts"]:

@@ -324,7 +324,8 @@ class Plan:
     planned object: stage1.Candidates), scores (NumPy over the M scored candidates: eval_prob [M],
     refine_prob [M, K], valid [M], target [M] label, object [M] index into `candidates`,
     object_candidate [M] row in that Candidates; with `refine_rescore`, when it ran: refine_score [M, K],
-    the refinements' scores the policy used, 0 where not re-scored), initial_pose [4, 4] (the chosen Stage-1 candidate,
+    the refinements' scores the policy used, 0 where not re-scored; with `robust`, when it ran: robust_score [M] and
+    perturbed_score [M, 5], NaN where not judged), initial_pose [4, 4] (the chosen Stage-1 candidate,
     before refinement), objects (per object label: points, candidates, reason when skipped/empty),
     refinements_rejected (refined poses the policy chose that collided, each left out before deciding again),
     fallback (whether the grasp comes from the second plan with `PlannerConfig.fallback_filter`).
@@ -957,8 +958,8 @@ class Planner:
         candidates judged at perturbed poses in one Stage-2 call (`robust_scores`); with
         `RobustChoice.fits` and the neighbours' fits `fitted` (`neighbours.obstacle_fits`), a perturbed
         pose whose hand meets one scores 0. allowed bool [M] or None: the candidates it may choose from
-        (`PlannerConfig.failed_last`). Adds scores["robust_score"] [M] (NaN where not judged) -> choice,
-        score its eval_prob."""
+        (`PlannerConfig.failed_last`). Adds scores["robust_score"] [M] and scores["perturbed_score"] [M, P]
+        (the judged scores at the P perturbed poses; NaN where not judged) -> choice, score its eval_prob."""
         cfg = self.config
         test_fits = cfg.robust.fits and fitted is not None
 
@@ -981,9 +982,12 @@ class Planner:
                 hits = neighbours.fit_hits(pad_poses[:n], pad_widths[:n], owner, fits, mask, cfg.spec,
                                            cfg.neighbour_fits, sweep, cfg.stage2_sizes, pairs)
                 judged = np.where(hits, 0.0, judged)
-            return judged.reshape(-1, per)
+            judged = judged.reshape(-1, per)
+            scores["perturbed_score"][index] = judged  # kept for whoever studies the choice (eval.counterfactual)
+            return judged
 
         valid = scores["valid"] if allowed is None else scores["valid"] & allowed
+        scores["perturbed_score"] = np.full((len(valid), per), np.nan, np.float32)
         scores["robust_score"] = robust_scores(scores["eval_prob"], valid, cfg.eval_threshold, cfg.robust.top, judge, own)
         return robust_choice(choice, scores)
 

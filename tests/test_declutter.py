@@ -447,9 +447,10 @@ def test_cli_runs_on_a_user_mesh_folder_and_prints_json(tmp_path, capsys):
 # SuperGrasp adapters (when the planner is installed).
 
 
-@pytest.mark.slow
-@pytest.mark.skipif(importlib.util.find_spec("sgjax.planner") is None, reason="sgjax.planner is not installed")
-def test_supergrasp_methods_run_a_tiny_scene(objects, small_db):
+@pytest.fixture(scope="module")
+def rigged():
+    """(model, config): a tiny E-RNet rigged to rate every candidate 0.98, so the planner always executes
+    a grasp, and a small planner config for it."""
     import jax.numpy as jnp
     from flax import nnx
 
@@ -457,13 +458,18 @@ def test_supergrasp_methods_run_a_tiny_scene(objects, small_db):
     from sgjax.planner import PlannerConfig
     from sgjax.stage2.scene_cloud import SceneCloudConfig
 
-    # A tiny E-RNet rigged to rate every candidate 0.98, so the planner always executes a grasp.
     tiny = ERNetConfig.tiny(backbone=dataclasses.replace(ERNetConfig.tiny().backbone, sampler="random"))
     model = ERNet(tiny, rngs=nnx.Rngs(0))
     last = model.eval_head.layers[-1]
     last.kernel[...] = jnp.zeros_like(last.kernel[...])
     last.bias[...] = jnp.asarray([-2.0, 2.0], jnp.float32)
-    config = PlannerConfig(max_stage2_candidates=64, scene_cloud=SceneCloudConfig(max_points=4096), stage1_batch_sizes=(1,))
+    return model, PlannerConfig(max_stage2_candidates=64, scene_cloud=SceneCloudConfig(max_points=4096), stage1_batch_sizes=(1,))
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(importlib.util.find_spec("sgjax.planner") is None, reason="sgjax.planner is not installed")
+def test_supergrasp_methods_run_a_tiny_scene(objects, small_db, rigged):
+    model, config = rigged
     for name in ("supergrasp", "supergrasp-norefine"):
         assert METHODS[name].unavailable_reason() is None
         method = make_method(name, model=model, db=small_db, config=config)
@@ -481,6 +487,39 @@ def test_supergrasp_methods_run_a_tiny_scene(objects, small_db):
     strip = lambda log: [{**{k: v for k, v in a.items() if k not in ("timing", "observe_s", "trial_s", "settle_s")},
                           "info": {k: v for k, v in a["info"].items() if k != "compiled"}} for a in log["attempts"]]
     assert strip(again.log) == strip(run.log)
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(importlib.util.find_spec("sgjax.planner") is None, reason="sgjax.planner is not installed")
+def test_every_finalist_is_simulated_from_the_logged_states(objects, small_db, rigged):
+    from eval.counterfactual import RULES, oracle_successes, replay_choices, rule_successes
+
+    model, config = rigged
+    method = make_method("supergrasp", model=model, db=small_db, config=config)
+    run = run_scene(method, objects, 3, seed=0, index=0, config=CONFIG, setting="tiny-3")
+    states, reproduced = replay_choices(run.log, objects, method, CONFIG)
+    assert reproduced and states
+    logged = {a["attempt"]: a for a in run.log["attempts"]}
+    for state in states:
+        chosen = [f for f in state.finalists if f.chosen]
+        assert len(chosen) == 1 and len(state.finalists) >= 2
+        # the executed finalist, simulated in the batch, is the logged trial
+        assert chosen[0].outcome == state.logged == logged[state.attempt]["outcome"]
+        assert chosen[0].target == logged[state.attempt]["target"]
+        # the robust score is the mean of the own and the five perturbed scores
+        for f in state.finalists:
+            assert len(f.perturbed) == 5
+            assert f.robust_score == pytest.approx((f.eval_prob + sum(f.perturbed)) / 6, abs=1e-5)
+    executed = rule_successes(states, RULES["executed"])
+    assert executed == sum(logged[s.attempt]["success"] for s in states)
+    assert executed <= oracle_successes(states) <= len(states)
+    # a log the planner does not reproduce stops the replay there, and says so
+    changed = json.loads(json.dumps(run.log))
+    changed["attempts"][0]["pose"][0][3] += 0.01
+    assert replay_choices(changed, objects, method, CONFIG) == ([], False)
+    with pytest.raises(ValueError, match="robust"):
+        replay_choices(run.log, objects, make_method("supergrasp", model=model, db=small_db,
+                                                      config=dataclasses.replace(config, robust=None)), CONFIG)
 
 
 @pytest.mark.skipif(METHODS["contact-graspnet"].unavailable_reason() is not None,

@@ -394,6 +394,13 @@ def test_near_grasps_is_the_same_grasp_up_to_the_jaw_symmetry():
     # Against several poses: near any one of them; looser tolerances take more.
     assert near_grasps(poses, np.stack([poses[2], poses[7]]), SPEC, xp=np)[[2, 7]].all()
     assert near_grasps(poses, base[None], SPEC, max_distance=0.02, max_angle_deg=20, xp=np)[[2, 6]].all()
+    # A float32 pose is the same grasp as itself at any tolerance: its rotation, orthonormal only to
+    # float32's precision and scaled here by 1 - 1e-6, once fell outside a hundredth of a degree.
+    rough = np.asarray(base, np.float32).astype(np.float64)
+    rough[:3, :3] *= 1.0 - 1e-6
+    assert near_grasps(rough[None], rough[None], SPEC, max_distance=1e-4, max_angle_deg=0.01, xp=np)[0]
+    assert not near_grasps(moved(turn_local=about((1, 0, 0), 0.2))[None], base[None], SPEC, max_distance=1e-4,
+                           max_angle_deg=0.01, xp=np)[0]
     with pytest.raises(ValueError, match=r"\[K, 4, 4\] and \[F, 4, 4\]"):
         near_grasps(poses, base, SPEC, xp=np)
 

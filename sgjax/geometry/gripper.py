@@ -564,6 +564,11 @@ def near_grasps(poses, others, spec: GripperSpec, max_distance: float = AVOID_DI
     centre = lambda p: closing_centre(p, spec, xp)
     close = xp.linalg.norm(centre(poses)[:, None] - centre(others)[None], axis=-1) <= max_distance + 1e-9
     dots = xp.einsum("kia,fia->kfa", poses[:, :3, :3], others[:, :3, :3])  # axis-by-axis cosines [K, F, 3]
+    # Normalised by the rotations' norms (sqrt(3) each when exactly orthonormal): float32 poses are
+    # orthonormal only to ~1e-7 per entry, which moves the trace of the same pose by ~1e-6 and would fail
+    # a tolerance of a hundredth of a degree (cos 0.01 deg = 1 - 1.5e-8).
+    norm = lambda r: xp.sqrt(xp.sum(r * r, axis=(-2, -1)) / 3.0)
+    dots = dots / (norm(poses[:, :3, :3])[:, None, None] * norm(others[:, :3, :3])[None, :, None])
     trace = xp.maximum(dots.sum(-1), dots[..., 2] - dots[..., 0] - dots[..., 1])  # R or R turned 180 deg about z
     aligned = 0.5 * (trace - 1.0) >= np.cos(np.deg2rad(max_angle_deg)) - 1e-6
     return xp.any(close & aligned, axis=-1)
