@@ -716,6 +716,59 @@ def test_robust_scores_judge_only_the_best_passing_candidates():
     assert planner_mod.robust_choice(choice, {"eval_prob": eval_prob, "robust_score": alone}) is choice
 
 
+def test_a_robust_choice_that_must_pass_falls_back_to_what_is_left():
+    """`RobustChoice.must_pass`: a chosen mean at or below the bar sends every judged candidate below it
+    (their means become their evaluations) and the policy decides again; an evaluated candidate not yet
+    judged is judged in turn."""
+    eval_prob = np.array([0.95, 0.9, 0.8, 0.5], np.float32)
+    valid = np.ones(4, bool)
+    means = {0: 0.6, 1: 0.65, 2: 0.85, 3: 0.4}  # each candidate's robust mean, as a judge would give it
+    judge = lambda e, judged: np.where(~judged & (e > 0.7), [means[i] for i in range(4)], np.nan)
+    refine = np.zeros((4, 3), np.float32)
+
+    def decide(e):
+        index, kind, variant, score = planner_mod.decide(e, refine, valid, 0.7, 0.7)
+        return {"index": np.int32(index), "kind": np.int32(kind), "variant": np.int32(variant), "score": np.float32(score),
+                "pose": None}
+
+    scores = {"eval_prob": eval_prob.copy(), "robust_score": np.array([0.6, 0.65, np.nan, np.nan], np.float32)}
+    choice = planner_mod.robust_choice(decide(eval_prob), scores)  # the top two judged: 1 (0.65) wins
+    assert int(choice["index"]) == 1
+    out = planner_mod.passing_robust_choice(choice, scores, 0.7, decide, judge)
+    assert int(out["kind"]) == planner_mod.KIND_EVALUATED and int(out["index"]) == 2  # judged in turn: 0.85 passes
+    np.testing.assert_allclose(scores["eval_prob"], [0.6, 0.65, 0.8, 0.5])
+    np.testing.assert_allclose(scores["robust_score"], [0.6, 0.65, 0.85, np.nan])
+    # A lone candidate whose mean fails: nothing passes, no refinement passes either -> no grasp.
+    lone = {"eval_prob": np.array([0.9, 0.3, 0.2, 0.1], np.float32), "robust_score": np.array([0.6, np.nan, np.nan, np.nan], np.float32)}
+    out = planner_mod.passing_robust_choice(decide(lone["eval_prob"]), lone, 0.7, decide, judge)
+    assert int(out["kind"]) == planner_mod.KIND_NONE and lone["eval_prob"][0] == pytest.approx(0.6)
+    # A mean that passes: the choice stands, nothing changes.
+    kept = {"eval_prob": eval_prob.copy(), "robust_score": np.array([0.9, np.nan, np.nan, np.nan], np.float32)}
+    first = decide(kept["eval_prob"])
+    assert planner_mod.passing_robust_choice(first, kept, 0.7, decide, judge) is first
+
+
+def test_must_pass_in_the_planner_leaves_no_evaluated_grasp_below_its_mean(small_db, scene):
+    """In the planner: perturbed poses 5 cm off (where E-RNet's crop is mostly empty) pull the means far
+    below the own scores; the best mean the plain robust choice executes fails the bar, and with
+    must_pass no judged candidate whose mean fails is executed, each one's evaluation now its mean."""
+    model = ERNet(TINY, rngs=nnx.Rngs(3))
+    far = dict(top=64, shift=0.05)
+    probe = Planner(model, small_db, dataclasses.replace(CONFIG, eval_threshold=0.0, robust=planner_mod.RobustChoice(**far)))
+    s = probe.plan(*scene, viewpoint=CAMERA, seed=0).scores
+    judged = np.isfinite(s["robust_score"])
+    bar = 0.5 * float(np.max(s["robust_score"][judged]) + np.min(s["eval_prob"][judged]))
+    assert np.max(s["robust_score"][judged]) < bar < np.min(s["eval_prob"][judged])  # every own score passes, no mean
+    strict = dataclasses.replace(CONFIG, eval_threshold=bar, refine_threshold=bar, robust=planner_mod.RobustChoice(**far))
+    plain = Planner(model, small_db, strict).plan(*scene, viewpoint=CAMERA, seed=0)
+    assert plain.kind == "evaluated" and plain.scores["robust_score"][plain.candidate_index] < bar
+    must = dataclasses.replace(strict, robust=planner_mod.RobustChoice(**far, must_pass=True))
+    plan = Planner(model, small_db, must).plan(*scene, viewpoint=CAMERA, seed=0)
+    assert plan.kind != "evaluated"
+    again = np.isfinite(plan.scores["robust_score"])
+    assert again.sum() >= 2 and (plan.scores["eval_prob"][again] <= bar).all()
+
+
 def test_robust_choice_in_the_planner_is_judged_by_ernet_at_the_perturbed_poses(small_db, scene):
     """`PlannerConfig.robust`: the planner's robust scores equal E-RNet's scores at `perturbed_poses` of the
     best passing candidates (called directly), and the plan executes the highest of them."""
