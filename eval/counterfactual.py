@@ -47,8 +47,8 @@ class Finalist:
 
 @dataclasses.dataclass(frozen=True)
 class ChoiceState:
-    """A state of a replayed scene where the planner compared finalists: the attempt index, the logged
-    outcome of the grasp executed there, the objects on the table and the finalists."""
+    """A state of a replayed scene where the planner compared two or more finalists and executed one of
+    them: the attempt index, the logged outcome of that grasp, the objects on the table and the finalists."""
 
     attempt: int
     logged: str
@@ -118,7 +118,7 @@ def replay_choices(log: dict, objects: Sequence, method, config: DeclutterConfig
         executed = next(i for i, r in enumerate(simulated) if r["chosen"])
         if outcomes[executed] != record["outcome"] or simulated[executed]["target"] != target:
             return states, False
-        if len(rows) >= 2:
+        if len(rows) >= 2 and chosen:  # compared, and the executed grasp among them (not a refinement)
             outcome_of = {id(r): o for r, o in zip(simulated, outcomes)}
             finalists = tuple(Finalist(**{k2: v for k2, v in r.items() if k2 not in ("pose", "width")},
                                        outcome=outcome_of.get(id(r), NO_OBJECT)) for r in rows)
