@@ -20,7 +20,7 @@ import numpy as np
 from envs import camera as camera_lib
 from envs import scene as scene_lib
 from envs import trial as trial_lib
-from eval.declutter import NO_OBJECT, DeclutterConfig, closing_region_objects, plan_seed
+from eval.declutter import NO_OBJECT, DeclutterConfig, closing_region_objects, plan_seed, rigid_pose
 from eval.replay import logged_scene
 
 
@@ -63,7 +63,8 @@ def _finalists(plan, obs, scene: scene_lib.Scene, spec) -> list[dict]:
     for index in np.flatnonzero(np.isfinite(scores["robust_score"])):
         cands = plan.candidates[int(scores["object"][index])]
         row = int(scores["object_candidate"][index])
-        pose, width = np.asarray(cands.poses[row], np.float64), float(cands.widths[row])
+        # As the harness executes a pose: float64, the rotation re-orthonormalised.
+        pose, width = rigid_pose(cands.poses[row], "supergrasp"), float(cands.widths[row])
         counts = {k: v for k, v in closing_region_objects(obs.points, obs.point_labels, pose, width, spec).items()
                   if scene.present[k]}
         out.append({"index": int(index), "pose": pose, "width": width,
@@ -100,7 +101,7 @@ def replay_choices(log: dict, objects: Sequence, method, config: DeclutterConfig
         obs = camera_lib.observe(scene, config.camera, seed=s_seed + k)
         avoid = np.asarray(failed, np.float64).reshape(-1, 4, 4)
         plan = method.full_plan(obs.points, obs.point_labels, viewpoint, plan_seed(s_seed, k), avoid)
-        if plan.pose is None or not np.allclose(plan.pose, logged_pose, atol=1e-6):
+        if plan.pose is None or not np.allclose(rigid_pose(plan.pose, "supergrasp"), logged_pose, atol=1e-9):
             return states, False
         if record["outcome"] == NO_OBJECT or record["target"] is None:
             failed.append(logged_pose)

@@ -119,7 +119,7 @@ def closing_region_objects(
     return {int(i): int(c) for i, c in zip(ids, counts)}
 
 
-def _rigid(pose, method_name: str) -> np.ndarray:
+def rigid_pose(pose, method_name: str) -> np.ndarray:
     """The method's pose as float64 [4, 4] with its rotation re-orthonormalised; ValueError if unusable."""
     pose = np.asarray(pose, np.float64)
     if pose.shape != (4, 4) or not np.isfinite(pose).all():
@@ -234,7 +234,7 @@ def run_scene(
         if decision.pose is None:
             end, final_reason, final_timing = "no_grasp", decision.reason or "no grasp", dict(decision.timing)
             break
-        pose = _rigid(decision.pose, method.name)
+        pose = rigid_pose(decision.pose, method.name)
         width = float(np.clip(decision.width, 0.0, spec.max_opening))
         counts = closing_region_objects(obs.points, obs.point_labels, pose, width, spec)
         record = {
