@@ -21,7 +21,7 @@ from pathlib import Path
 
 from eval import declutter
 from eval.benchmark import resolve_objects
-from eval.counterfactual import RULES, ChoiceState, Finalist, oracle_successes, replay_choices, rule_successes
+from eval.counterfactual import RULES, ChoiceState, Finalist, oracle_successes, pick, replay_choices, rule_successes
 from eval.methods import make_method
 from sgjax.utils.files import atomic_write_text
 
@@ -87,8 +87,7 @@ def main() -> None:
     executed = [max(s.finalists, key=lambda f: f.chosen) for s in states]
     for name, rule in RULES.items():
         k = rule_successes(states, rule)
-        picks = [max(enumerate(s.finalists), key=lambda t: (rule(t[1]), -t[0]))[1] for s in states]
-        differs = sum(p is not e for p, e in zip(picks, executed))
+        differs = sum(pick(s, rule) is not e for s, e in zip(states, executed))
         print(f"| {name} | {k} | {100 * k / n:.2f} | {differs} |")
 
 

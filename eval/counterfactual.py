@@ -132,8 +132,8 @@ def replay_choices(log: dict, objects: Sequence, method, config: DeclutterConfig
     return states, True
 
 
-# A rule ranks a state's finalists: finalist -> key, the highest executed (ties: the first finalist,
-# i.e. the better evaluated).
+# A rule ranks a state's finalists: finalist -> key, the highest executed (ties: the better evaluated,
+# then the earlier row, as `sgjax.planner.robust_choice` breaks them).
 RULES: dict[str, Callable[[Finalist], float]] = {
     "executed": lambda f: float(f.chosen),
     "highest evaluation (the paper)": lambda f: f.eval_prob,
@@ -143,10 +143,15 @@ RULES: dict[str, Callable[[Finalist], float]] = {
 }
 
 
+def pick(state: ChoiceState, rule: Callable[[Finalist], float]) -> Finalist:
+    """The finalist `rule` executes at `state`: the highest key; ties: the better evaluated, then the
+    earlier row."""
+    return max(state.finalists, key=lambda f: (rule(f), f.eval_prob, -f.index))
+
+
 def rule_successes(states: Sequence[ChoiceState], rule: Callable[[Finalist], float]) -> int:
-    """How many states' pick by `rule` (the finalist with the highest key; ties: the earliest, the
-    better evaluated) succeeds."""
-    return sum(state.finalists[int(np.argmax([rule(f) for f in state.finalists]))].success for state in states)
+    """How many states' pick by `rule` (`pick`) succeeds."""
+    return sum(pick(state, rule).success for state in states)
 
 
 def oracle_successes(states: Sequence[ChoiceState]) -> int:
