@@ -71,7 +71,7 @@ def _finalists(plan, obs, scene: scene_lib.Scene, spec) -> list[dict]:
                     "target": max(counts, key=lambda k: (counts[k], -k)) if counts else None,
                     "eval_prob": float(scores["eval_prob"][index]), "robust_score": float(scores["robust_score"][index]),
                     "perturbed": tuple(float(v) for v in scores["perturbed_score"][index]),
-                    "fit_grasp": bool(cands.primitive_id[row] < 0), "chosen": int(index) == int(plan.candidate_index)})
+                    "fit_grasp": bool(cands.primitive_id[row] < 0), "chosen": plan.kind == "evaluated" and int(index) == int(plan.candidate_index)})
     return out
 
 
