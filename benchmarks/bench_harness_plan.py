@@ -31,7 +31,8 @@ KEYS = ("stage1_s", "stage2_s", "total_s")
 
 
 def scene_indices(text: str) -> list[int]:
-    """"0-5" or "0,3,7" -> scene indices."""
+    """"0-5" or "0,3,7" -> scene indices. Not `eval.benchmark.scene_indices`: the worker also runs under a
+    reference commit's tree, which may predate it."""
     out: list[int] = []
     for part in text.split(","):
         lo, _, hi = part.partition("-")

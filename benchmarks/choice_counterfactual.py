@@ -20,18 +20,10 @@ import json
 from pathlib import Path
 
 from eval import declutter
-from eval.benchmark import resolve_objects
+from eval.benchmark import resolve_objects, scene_indices
 from eval.counterfactual import RULES, ChoiceState, Finalist, oracle_successes, pick, replay_choices, rule_successes
 from eval.methods import make_method
 from sgjax.utils.files import atomic_write_text
-
-
-def scene_range(text: str) -> set[int]:
-    out = set()
-    for part in text.split(","):
-        lo, _, hi = part.partition("-")
-        out |= set(range(int(lo), int(hi or lo) + 1))
-    return out
 
 
 def load_states(path: Path) -> tuple[list[ChoiceState], bool]:
@@ -50,6 +42,7 @@ def main() -> None:
     parser.add_argument("--scenes", help="scene indices, e.g. 0-9 (default: every log in the folder)")
     args = parser.parse_args()
 
+    wanted = set(scene_indices(args.scenes)) if args.scenes else None
     method = make_method("supergrasp")
     assets = {}
     states: list[ChoiceState] = []
@@ -59,7 +52,7 @@ def main() -> None:
         out.mkdir(parents=True, exist_ok=True)
         for path in sorted(folder.glob("scene_*.json")):
             log = json.loads(path.read_text())
-            if args.scenes and int(log["scene_index"]) not in scene_range(args.scenes):
+            if wanted is not None and int(log["scene_index"]) not in wanted:
                 continue
             dest = out / path.name
             if dest.exists():

@@ -24,21 +24,12 @@ from pathlib import Path
 import numpy as np
 
 from eval import declutter
-from eval.benchmark import resolve_objects
+from eval.benchmark import resolve_objects, scene_indices
 from eval.replay import ReplayedAttempt, collision_cause, replay_scene
 from sgjax.geometry.gripper import PANDA_HAND
 from sgjax.utils.files import atomic_write_text
 
 OTHERS = {"panda": PANDA_HAND, "none": None}
-
-
-def scene_range(text: str) -> list[int]:
-    """ "0-29" or "3" or "0,4,7" -> indices."""
-    out = []
-    for part in text.split(","):
-        lo, _, hi = part.partition("-")
-        out += list(range(int(lo), int(hi or lo) + 1))
-    return out
 
 
 def replay_logs(logs: list[dict], other_name: str, out: Path) -> list[ReplayedAttempt]:
@@ -123,7 +114,7 @@ def log_arguments(description: str) -> argparse.ArgumentParser:
 def read_logs(args: argparse.Namespace) -> list[dict]:
     """The scene logs `log_arguments` names (those that exist); SystemExit when there are none."""
     folder = args.results / "logs" / args.method / args.setting / f"seed{args.seed}"
-    paths = [folder / f"scene_{i:03d}.json" for i in scene_range(args.scenes)]
+    paths = [folder / f"scene_{i:03d}.json" for i in scene_indices(args.scenes)]
     logs = [json.loads(p.read_text()) for p in paths if p.exists()]
     if not logs:
         raise SystemExit(f"no scene logs under {folder} for scenes {args.scenes}")

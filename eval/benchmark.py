@@ -73,6 +73,18 @@ def resolve_objects(setting: declutter.Setting, objects: str | None = None, prog
     return report.assets, label, identity
 
 
+def scene_indices(text: str) -> list[int]:
+    """Scene indices written as on the benchmark scripts' command lines: "0-5", "3" or "0,4,7-9" ->
+    [0, 1, 2, 3, 4, 5] ...; ValueError naming the text when it is not of that form."""
+    out: list[int] = []
+    for part in text.split(","):
+        lo, _, hi = part.strip().partition("-")
+        if not lo.isdigit() or not (hi == "" or hi.isdigit()):
+            raise ValueError(f"scene indices must look like 0-5 or 0,3,7, got {text!r}")
+        out.extend(range(int(lo), int(hi or lo) + 1))
+    return out
+
+
 def machine_label() -> str:
     """A short description of this machine for the timing table (CPU, cores, JAX backend)."""
     import jax

@@ -96,6 +96,15 @@ def log(objects: int, outcomes: str, **extra) -> dict:
     return {"objects": objects, "attempts": attempts, **extra}
 
 
+def test_scene_indices_of_the_benchmark_scripts():
+    from eval.benchmark import scene_indices
+
+    assert scene_indices("0-3") == [0, 1, 2, 3] and scene_indices("7") == [7]
+    assert scene_indices("0,4,7-9") == [0, 4, 7, 8, 9]
+    with pytest.raises(ValueError, match="scene indices"):
+        scene_indices("0:5")
+
+
 def test_metrics_are_ratios_of_totals_as_in_the_paper():
     logs = [log(10, "s" * 9 + "f"), log(10, "sfsfs"), log(5, "")]
     summary = metrics.summarize(logs)
