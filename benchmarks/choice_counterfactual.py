@@ -76,8 +76,9 @@ def main() -> None:
     print(f"\n{n} states with >= 2 finalists ({stopped} scene(s) stopped early); finalists per state "
           f"{len(finalists) / n:.1f}, of which succeed {100 * sum(f.success for f in finalists) / len(finalists):.1f} %\n")
     print("| choice | successes | % | differs from executed |\n|---|---:|---:|---:|")
-    print(f"| any finalist (oracle) | {oracle_successes(states)} | {100 * oracle_successes(states) / n:.2f} | |")
-    executed = [max(s.finalists, key=lambda f: f.chosen) for s in states]
+    oracle = oracle_successes(states)
+    print(f"| any finalist (oracle) | {oracle} | {100 * oracle / n:.2f} | |")
+    executed = [pick(s, RULES["executed"]) for s in states]
     for name, rule in RULES.items():
         k = rule_successes(states, rule)
         differs = sum(pick(s, rule) is not e for s, e in zip(states, executed))

@@ -119,10 +119,11 @@ def replay_choices(log: dict, objects: Sequence, method, config: DeclutterConfig
         executed = next(i for i, r in enumerate(simulated) if r["chosen"])
         if outcomes[executed] != record["outcome"] or simulated[executed]["target"] != target:
             return states, False
+        for row, outcome in zip(simulated, outcomes):
+            row["outcome"] = outcome
         if len(rows) >= 2 and chosen:  # compared, and the executed grasp among them (not a refinement)
-            outcome_of = {id(r): o for r, o in zip(simulated, outcomes)}
-            finalists = tuple(Finalist(**{k2: v for k2, v in r.items() if k2 not in ("pose", "width")},
-                                       outcome=outcome_of.get(id(r), NO_OBJECT)) for r in rows)
+            finalists = tuple(Finalist(**{k2: v for k2, v in r.items() if k2 not in ("pose", "width", "outcome")},
+                                       outcome=r.get("outcome", NO_OBJECT)) for r in rows)
             states.append(ChoiceState(k, record["outcome"], int(scene.present.sum()), finalists))
         if result.label[executed]:
             scene = scene_lib.remove_object(scene, target)
