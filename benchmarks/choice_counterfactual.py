@@ -15,23 +15,16 @@ executed grasp succeeded, how often any finalist would have (the oracle), and ea
 from __future__ import annotations
 
 import argparse
-import dataclasses
-import json
-from pathlib import Path
 
-from eval import declutter
-from eval.benchmark import resolve_objects, scene_indices
-from eval.counterfactual import RULES, ChoiceState, Finalist, oracle_successes, pick, replay_choices, rule_successes
+from eval.benchmark import scene_indices
+from eval.counterfactual import (RULES, ChoiceState, Finalist, oracle_successes, pick, replay_choices, replay_logs,
+                                 rule_successes)
 from eval.methods import make_method
-from sgjax.utils.files import atomic_write_text
 
 
-def load_states(path: Path) -> tuple[list[ChoiceState], bool]:
-    saved = json.loads(path.read_text())
-    states = [ChoiceState(s["attempt"], s["logged"], s["objects"],
-                          tuple(Finalist(**{**f, "perturbed": tuple(f["perturbed"])}) for f in s["finalists"]))
-              for s in saved["states"]]
-    return states, saved["reproduced"]
+def decode(saved: dict) -> ChoiceState:
+    return ChoiceState(saved["attempt"], saved["logged"], saved["objects"],
+                       tuple(Finalist(**{**f, "perturbed": tuple(f["perturbed"])}) for f in saved["finalists"]))
 
 
 def main() -> None:
@@ -42,33 +35,15 @@ def main() -> None:
     parser.add_argument("--scenes", help="scene indices, e.g. 0-9 (default: every log in the folder)")
     args = parser.parse_args()
 
-    wanted = set(scene_indices(args.scenes)) if args.scenes else None
     method = make_method("supergrasp")
-    assets = {}
     states: list[ChoiceState] = []
     stopped = 0
-    for folder in map(Path, args.logs):
-        out = Path(args.out) / folder.parent.name / folder.name
-        out.mkdir(parents=True, exist_ok=True)
-        for path in sorted(folder.glob("scene_*.json")):
-            log = json.loads(path.read_text())
-            if wanted is not None and int(log["scene_index"]) not in wanted:
-                continue
-            dest = out / path.name
-            if dest.exists():
-                scene_states, reproduced = load_states(dest)
-            else:
-                name = args.objects or log["object_set"]["name"]
-                if name not in assets:
-                    setting = declutter.Setting(log["setting"], int(log["n_objects"]), log["object_set"]["name"])
-                    assets[name] = resolve_objects(setting, args.objects)[0]
-                scene_states, reproduced = replay_choices(log, assets[name], method)
-                atomic_write_text(dest, json.dumps({"scene_index": log["scene_index"], "reproduced": reproduced,
-                                                    "states": [dataclasses.asdict(s) for s in scene_states]}))
-                print(f"{folder.name}/{path.name}: {len(scene_states)} states" + ("" if reproduced else " (stopped: differs from the log)"),
-                      flush=True)
-            states += scene_states
-            stopped += not reproduced
+    replay = lambda log, objects: replay_choices(log, objects, method)
+    for name, scene_states, reproduced in replay_logs(args.logs, args.out, replay, args.objects,
+                                                      set(scene_indices(args.scenes)) if args.scenes else None, decode):
+        print(f"{name}: {len(scene_states)} states" + ("" if reproduced else " (stopped: differs from the log)"), flush=True)
+        states += scene_states
+        stopped += not reproduced
     n = len(states)
     if not n:
         raise SystemExit("no state with two or more finalists in these logs")

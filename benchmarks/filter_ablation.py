@@ -92,6 +92,13 @@ VARIANTS = {
     # ... and the mean must pass the evaluation bar too, a lone passing candidate judged as well
     # (`RobustChoice.must_pass`; eval.counterfactual: lone candidates succeeded 61 % on dense states; off: it trades TSR for GSR).
     "robust-must-pass": {"planner": {"robust": RobustChoice(must_pass=True)}},
+    # The second plan also when the first plan's grasp was chosen without a comparison (a lone passing
+    # candidate; and refinements): its choice replaces the first's when it compared two or more.
+    # ... and among the robust choice's judged candidates, those clear of the obstacles and the neighbours'
+    # fits by 5 mm (the old filter margin, as a preference) first (`RobustChoice.prefer_clearance`).
+    "robust-prefer-clear": {"planner": {"robust": RobustChoice(prefer_clearance=0.005)}},
+    "fallback-for-lone": {"planner": {"fallback_for": ("lone",)}},
+    "fallback-for-uncompared": {"planner": {"fallback_for": ("lone", "refined")}},
 }
 
 

@@ -13,15 +13,21 @@ rule over the finalists' scores would have done (`rule_successes`). The episode 
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable, Sequence
+import json
+from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
 
 import numpy as np
 
 from envs import camera as camera_lib
 from envs import scene as scene_lib
 from envs import trial as trial_lib
+from eval import declutter
+from eval.benchmark import resolve_objects
 from eval.declutter import NO_OBJECT, DeclutterConfig, closing_region_objects, plan_seed, rigid_pose
 from eval.replay import logged_scene
+from sgjax.planner import uncompared
+from sgjax.utils.files import atomic_write_text
 
 
 @dataclasses.dataclass(frozen=True)
@@ -56,8 +62,9 @@ class ChoiceState:
     finalists: tuple[Finalist, ...]
 
 
-def _finalists(plan, obs, scene: scene_lib.Scene, spec) -> list[dict]:
-    """The judged candidates of a plan (robust_score finite) with the object each would lift."""
+def _finalists(state: "LoggedState") -> list[dict]:
+    """The judged candidates of the state's plan (robust_score finite) with the object each would lift."""
+    plan = state.plan
     scores = plan.scores
     out = []
     for index in np.flatnonzero(np.isfinite(scores["robust_score"])):
@@ -65,14 +72,113 @@ def _finalists(plan, obs, scene: scene_lib.Scene, spec) -> list[dict]:
         row = int(scores["object_candidate"][index])
         # As the harness executes a pose: float64, the rotation re-orthonormalised.
         pose, width = rigid_pose(cands.poses[row], "supergrasp"), float(cands.widths[row])
-        counts = {k: v for k, v in closing_region_objects(obs.points, obs.point_labels, pose, width, spec).items()
-                  if scene.present[k]}
-        out.append({"index": int(index), "pose": pose, "width": width,
-                    "target": max(counts, key=lambda k: (counts[k], -k)) if counts else None,
+        out.append({"index": int(index), "pose": pose, "width": width, "target": state.lifted(pose, width),
                     "eval_prob": float(scores["eval_prob"][index]), "robust_score": float(scores["robust_score"][index]),
                     "perturbed": tuple(float(v) for v in scores["perturbed_score"][index]),
                     "fit_grasp": bool(cands.primitive_id[row] < 0), "chosen": plan.kind == "evaluated" and int(index) == int(plan.candidate_index)})
     return out
+
+
+class LoggedStates:
+    """The states of a SuperGrasp scene log, replayed: iterate to get each attempt's `LoggedState` (the
+    observation, and `method`'s plan of it, which must be the logged grasp); the caller may simulate
+    other grasps from it (`LoggedState.simulate`), and the episode then goes on as logged. `reproduced`
+    turns False, and the iteration stops, when a plan chose another grasp than the log's or a replayed
+    outcome differed (another planner, checkpoint or machine's numerics)."""
+
+    def __init__(self, log: dict, objects: Sequence, method, config: DeclutterConfig | None = None):
+        if not hasattr(method, "full_plan"):
+            raise ValueError("a replay of logged states needs a SuperGrasp planner method (its full_plan)")
+        self.log, self.objects, self.method = log, objects, method
+        self.config = config or DeclutterConfig()
+        self.reproduced = True
+
+    def __iter__(self):
+        config = self.config
+        scene = logged_scene(self.log, self.objects, config)
+        self.method.begin_scene()
+        s_seed = int(self.log["scene_seed"])
+        viewpoint = np.asarray(config.camera.position, np.float64)
+        failed: list[np.ndarray] = []
+        for record in self.log["attempts"]:
+            k = int(record["attempt"])
+            obs = camera_lib.observe(scene, config.camera, seed=s_seed + k)
+            avoid = np.asarray(failed, np.float64).reshape(-1, 4, 4)
+            plan = self.method.full_plan(obs.points, obs.point_labels, viewpoint, plan_seed(s_seed, k), avoid)
+            logged_pose = np.asarray(record["pose"], np.float64)
+            if plan.pose is None or not np.allclose(rigid_pose(plan.pose, "supergrasp"), logged_pose, atol=1e-9):
+                self.reproduced = False
+                return
+            state = LoggedState(k, record, obs, plan, scene, avoid, viewpoint, plan_seed(s_seed, k), config)
+            yield state
+            if state.target is None:
+                failed.append(logged_pose)
+                continue
+            if state.executed is None:
+                state.simulate([])
+            if not state.executed[1]:
+                self.reproduced = False
+                return
+            result, index = state.executed[0], state.executed[2]
+            if result.label[index]:
+                scene = scene_lib.remove_object(scene, state.target)
+            else:
+                failed.append(logged_pose)
+                scene = scene_lib.after_trial(scene, result.final_qpos[index])
+
+
+@dataclasses.dataclass
+class LoggedState:
+    """One logged attempt's state: attempt index, its log record, the observation, the replaying method's
+    plan (the logged grasp), the scene, the failed poses so far avoid [F, 4, 4], the camera's position
+    viewpoint [3] and the plan's seed. target: the logged
+    object (None: no object between the fingers, no trial)."""
+
+    attempt: int
+    record: dict
+    obs: object
+    plan: object
+    scene: scene_lib.Scene
+    avoid: np.ndarray
+    viewpoint: np.ndarray
+    seed: int
+    config: DeclutterConfig
+    executed: tuple | None = None  # (trial result, the logged outcome reproduced, its row)
+
+    @property
+    def target(self) -> int | None:
+        record = self.record
+        return None if record["outcome"] == NO_OBJECT or record["target"] is None else int(record["target"])
+
+    def lifted(self, pose: np.ndarray, width: float) -> int | None:
+        """The object the harness would lift with `pose` [4, 4] (float64, `rigid_pose`): the present one
+        with the most observed points in the closing region; None: none (no trial)."""
+        counts = {k: v for k, v in closing_region_objects(self.obs.points, self.obs.point_labels, pose, width,
+                                                          self.config.gripper).items() if self.scene.present[k]}
+        return max(counts, key=lambda k: (counts[k], -k)) if counts else None
+
+    def simulate(self, rows: list[dict]) -> list[str]:
+        """Execute rows [{"pose", "width", "target"}] (target not None) and the logged grasp from this state in
+        one batched trial -> the rows' outcomes (`envs.trial.Outcome` names, lower case). A row marked
+        "chosen" is the logged grasp itself (else it is added). Once per state."""
+        if self.executed is not None or self.target is None:
+            raise ValueError("simulate runs once per state, and only where the logged grasp had a trial")
+        record = self.record
+        rows = list(rows)
+        given = len(rows)
+        executed = next((i for i, r in enumerate(rows) if r.get("chosen")), None)
+        if executed is None:
+            rows.append({"pose": np.asarray(record["pose"], np.float64), "width": float(record["width"]),
+                         "target": self.target})
+            executed = given
+        config = self.config
+        result = trial_lib.run_trials(self.scene, np.asarray([r["target"] for r in rows]), np.stack([r["pose"] for r in rows]),
+                                      np.asarray([r["width"] for r in rows]), backend=config.backend, config=config.trial,
+                                      nthread=config.nthread)
+        outcomes = [trial_lib.Outcome(int(o)).name.lower() for o in result.outcome]
+        same = outcomes[executed] == record["outcome"] and rows[executed]["target"] == self.target
+        self.executed = (result, same, executed)
+        return outcomes[:given]
 
 
 def replay_choices(log: dict, objects: Sequence, method, config: DeclutterConfig | None = None) -> tuple[list[ChoiceState], bool]:
@@ -87,50 +193,111 @@ def replay_choices(log: dict, objects: Sequence, method, config: DeclutterConfig
     """
     if not hasattr(method, "full_plan") or getattr(method, "config", None) is None or method.config.robust is None:
         raise ValueError("replay_choices needs a SuperGrasp planner method with PlannerConfig.robust (its finalists)")
-    config = config or DeclutterConfig()
-    spec = config.gripper
-    scene = logged_scene(log, objects, config)
-    method.begin_scene()
-    s_seed = int(log["scene_seed"])
-    viewpoint = np.asarray(config.camera.position, np.float64)
-    failed: list[np.ndarray] = []
+    replay = LoggedStates(log, objects, method, config)
     states: list[ChoiceState] = []
-    for record in log["attempts"]:
-        k = int(record["attempt"])
-        logged_pose = np.asarray(record["pose"], np.float64)
-        obs = camera_lib.observe(scene, config.camera, seed=s_seed + k)
-        avoid = np.asarray(failed, np.float64).reshape(-1, 4, 4)
-        plan = method.full_plan(obs.points, obs.point_labels, viewpoint, plan_seed(s_seed, k), avoid)
-        if plan.pose is None or not np.allclose(rigid_pose(plan.pose, "supergrasp"), logged_pose, atol=1e-9):
-            return states, False
-        if record["outcome"] == NO_OBJECT or record["target"] is None:
-            failed.append(logged_pose)
+    for state in replay:
+        if state.target is None:
             continue
-        target = int(record["target"])
-        rows = _finalists(plan, obs, scene, spec) if "robust_score" in plan.scores else []
+        rows = _finalists(state) if "robust_score" in state.plan.scores else []
         simulated = [r for r in rows if r["target"] is not None]
-        chosen = [i for i, r in enumerate(simulated) if r["chosen"]]
-        if not chosen:  # the executed grasp was not judged (a refined or lone candidate): simulate it alone
-            simulated.append({"pose": logged_pose, "width": float(record["width"]), "target": target, "chosen": True})
-        result = trial_lib.run_trials(scene, np.asarray([r["target"] for r in simulated]),
-                                      np.stack([r["pose"] for r in simulated]), np.asarray([r["width"] for r in simulated]),
-                                      backend=config.backend, config=config.trial, nthread=config.nthread)
-        outcomes = [trial_lib.Outcome(int(o)).name.lower() for o in result.outcome]
-        executed = next(i for i, r in enumerate(simulated) if r["chosen"])
-        if outcomes[executed] != record["outcome"] or simulated[executed]["target"] != target:
-            return states, False
+        outcomes = state.simulate(simulated)
+        if not state.executed[1]:
+            continue  # the replay stops there (`LoggedStates`)
         for row, outcome in zip(simulated, outcomes):
             row["outcome"] = outcome
-        if len(rows) >= 2 and chosen:  # compared, and the executed grasp among them (not a refinement)
+        if len(rows) >= 2 and any(r["chosen"] for r in simulated):  # compared, the executed grasp among them
             finalists = tuple(Finalist(**{k2: v for k2, v in r.items() if k2 not in ("pose", "width", "outcome")},
                                        outcome=r.get("outcome", NO_OBJECT)) for r in rows)
-            states.append(ChoiceState(k, record["outcome"], int(scene.present.sum()), finalists))
-        if result.label[executed]:
-            scene = scene_lib.remove_object(scene, target)
-        else:
-            failed.append(logged_pose)
-            scene = scene_lib.after_trial(scene, result.final_qpos[executed])
-    return states, True
+            states.append(ChoiceState(state.attempt, state.record["outcome"], int(state.scene.present.sum()), finalists))
+    return states, replay.reproduced
+
+
+def plan_kind(plan, threshold: float) -> str:
+    """How a plan's grasp was chosen: "compared" (an evaluated grasp among two or more passing candidates),
+    "lone" or "refined" (`sgjax.planner.uncompared`), "none" (no grasp); ", second plan" added when it came
+    from the second plan (`Plan.fallback`)."""
+    if not plan.ok:
+        return "none"
+    return (uncompared(plan, threshold) or "compared") + (", second plan" if plan.fallback else "")
+
+
+@dataclasses.dataclass(frozen=True)
+class AlternativeState:
+    """A logged state (one with a trial) where another planner planned too: the attempt index, the logged
+    grasp's outcome and how it was chosen (`plan_kind`), the alternative's, and whether the alternative
+    chose the logged grasp itself (then its outcome is the logged one)."""
+
+    attempt: int
+    logged: str
+    logged_kind: str
+    outcome: str
+    kind: str
+    same: bool
+
+
+def replay_alternative(log: dict, objects: Sequence, method, alternative,
+                       config: DeclutterConfig | None = None) -> tuple[list[AlternativeState], bool]:
+    """Replay scene log `log` with `method` (the planner that made it) and let `alternative` (another
+    SuperGrasp planner method, e.g. with another `PlannerConfig`) plan every logged state too, with the
+    same seed and failed poses and its own Stage-1 memory; its grasp is executed from that state when it
+    differs from the logged one (outcome "none" when it plans none, "no_object" when nothing lies between
+    its fingers) and the episode goes on as logged. So a change of the planner is measured on identical
+    states, one decision at a time, without the divergence of whole episodes (what it does to later
+    states, e.g. fewer objects left, only a benchmark run shows).
+
+    Returns (states, reproduced) as `replay_choices`. Raises ValueError for methods without `full_plan`."""
+    if not hasattr(alternative, "full_plan") or getattr(alternative, "config", None) is None:
+        raise ValueError("replay_alternative needs a SuperGrasp planner method as the alternative (its full_plan)")
+    replay = LoggedStates(log, objects, method, config)
+    threshold = alternative.config.eval_threshold
+    alternative.begin_scene()
+    states: list[AlternativeState] = []
+    for state in replay:
+        other = alternative.full_plan(state.obs.points, state.obs.point_labels, state.viewpoint, state.seed, state.avoid)
+        if state.target is None:
+            continue
+        logged_pose = np.asarray(state.record["pose"], np.float64)
+        pose = None if other.pose is None else rigid_pose(other.pose, "supergrasp")
+        same = pose is not None and np.allclose(pose, logged_pose, atol=1e-9)
+        target = None if pose is None or same else state.lifted(pose, float(other.width))
+        rows = [] if target is None else [{"pose": pose, "width": float(other.width), "target": target}]
+        outcomes = state.simulate(rows)
+        if not state.executed[1]:
+            continue  # the replay stops there
+        outcome = state.record["outcome"] if same else "none" if pose is None else outcomes[0] if rows else NO_OBJECT
+        states.append(AlternativeState(state.attempt, state.record["outcome"], plan_kind(state.plan, threshold), outcome,
+                                       plan_kind(other, threshold), bool(same)))
+    return states, replay.reproduced
+
+
+def replay_logs(folders: Sequence, out, replay: Callable, objects: str | None = None, scenes=None,
+                decode: Callable = lambda d: d) -> Iterator[tuple[str, list, bool]]:
+    """Replay every scene log of `folders` (a run's `logs/supergrasp/<setting>/seed<k>` folders) with
+    `replay(log, objects) -> (states, reproduced)` (states: dataclasses), resumably: each scene's result
+    goes to out/<setting>/<seed folder>/scene_XXX.json (written atomically) and is read back from there
+    on a later run, its states through `decode(dict)`. objects: an object set or mesh folder instead of
+    the log's; scenes: the scene indices to replay (None: all). Yields (name, states, reproduced) per scene."""
+    assets: dict = {}
+    for folder in map(Path, folders):
+        dest_dir = Path(out) / folder.parent.name / folder.name
+        dest_dir.mkdir(parents=True, exist_ok=True)
+        for path in sorted(folder.glob("scene_*.json")):
+            log = json.loads(path.read_text())
+            if scenes is not None and int(log["scene_index"]) not in scenes:
+                continue
+            dest = dest_dir / path.name
+            if dest.exists():
+                saved = json.loads(dest.read_text())
+                yield f"{folder.name}/{path.name}", [decode(d) for d in saved["states"]], saved["reproduced"]
+                continue
+            name = objects or log["object_set"]["name"]
+            if name not in assets:
+                setting = declutter.Setting(log["setting"], int(log["n_objects"]), log["object_set"]["name"])
+                assets[name] = resolve_objects(setting, objects)[0]
+            states, reproduced = replay(log, assets[name])
+            atomic_write_text(dest, json.dumps({"scene_index": log["scene_index"], "reproduced": reproduced,
+                                                "states": [dataclasses.asdict(st) for st in states]}))
+            yield f"{folder.name}/{path.name}", states, reproduced
 
 
 # A rule ranks a state's finalists: finalist -> key, the highest executed (ties: the better evaluated,

@@ -498,14 +498,21 @@ def test_supergrasp_methods_run_a_tiny_scene(objects, small_db, rigged):
     assert strip(again.log) == strip(run.log)
 
 
+@pytest.fixture(scope="module")
+def supergrasp_run(objects, small_db, rigged):
+    """(method, run): the rigged SuperGrasp planner's run of a tiny 3-object scene."""
+    model, config = rigged
+    method = make_method("supergrasp", model=model, db=small_db, config=config)
+    return method, run_scene(method, objects, 3, seed=0, index=0, config=CONFIG, setting="tiny-3")
+
+
 @pytest.mark.slow
 @pytest.mark.skipif(importlib.util.find_spec("sgjax.planner") is None, reason="sgjax.planner is not installed")
-def test_every_finalist_is_simulated_from_the_logged_states(objects, small_db, rigged):
+def test_every_finalist_is_simulated_from_the_logged_states(objects, small_db, rigged, supergrasp_run):
     from eval.counterfactual import RULES, oracle_successes, replay_choices, rule_successes
 
     model, config = rigged
-    method = make_method("supergrasp", model=model, db=small_db, config=config)
-    run = run_scene(method, objects, 3, seed=0, index=0, config=CONFIG, setting="tiny-3")
+    method, run = supergrasp_run
     states, reproduced = replay_choices(run.log, objects, method, CONFIG)
     assert reproduced and states
     logged = {a["attempt"]: a for a in run.log["attempts"]}
@@ -529,6 +536,46 @@ def test_every_finalist_is_simulated_from_the_logged_states(objects, small_db, r
     with pytest.raises(ValueError, match="robust"):
         replay_choices(run.log, objects, make_method("supergrasp", model=model, db=small_db,
                                                       config=dataclasses.replace(config, robust=None)), CONFIG)
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(importlib.util.find_spec("sgjax.planner") is None, reason="sgjax.planner is not installed")
+def test_another_planner_is_measured_on_the_logged_states(objects, small_db, rigged, supergrasp_run):
+    """`replay_alternative`: another planner plans each logged state; its grasp, where it differs, is
+    executed from that very state (its first one is the initial scene, so the alternative's own run
+    must agree there), the same planner agrees everywhere, and a planner that finds nothing says so."""
+    from eval.counterfactual import replay_alternative
+
+    model, config = rigged
+    method, run = supergrasp_run
+    logged = {a["attempt"]: a for a in run.log["attempts"]}
+    twin = make_method("supergrasp", model=model, db=small_db, config=config)
+    states, reproduced = replay_alternative(run.log, objects, method, twin, CONFIG)
+    assert reproduced and [s.attempt for s in states] == [k for k, a in logged.items() if a["target"] is not None]
+    assert all(s.same and s.outcome == s.logged == logged[s.attempt]["outcome"] and s.kind == s.logged_kind
+               for s in states)
+    assert {s.logged_kind for s in states} <= {"compared", "lone", "refined", "compared, second plan",
+                                               "lone, second plan", "refined, second plan"}
+    # Without the grasps on the fits (offered first) the planner chooses other grasps.
+    other_config = dataclasses.replace(config, fit_grasps=None)
+    other = make_method("supergrasp", model=model, db=small_db, config=other_config)
+    states, reproduced = replay_alternative(run.log, objects, method, other, CONFIG)
+    assert reproduced and len(states) == len([a for a in logged.values() if a["target"] is not None])
+    own = run_scene(make_method("supergrasp", model=model, db=small_db, config=other_config), objects, 3, seed=0,
+                    index=0, config=CONFIG, setting="tiny-3")
+    first, own_first = states[0], own.log["attempts"][0]
+    assert first.attempt == 0 and not first.same
+    assert not np.allclose(own_first["pose"], logged[0]["pose"])
+    assert first.outcome == own_first["outcome"]
+    assert first.kind.split(",")[0] in {"evaluated": ("compared", "lone"), "refined": ("refined",)}[own_first["info"]["kind"]]
+    assert first.kind.endswith("second plan") == bool(own_first["info"].get("fallback"))
+    # A planner whose bar nothing passes plans no grasp anywhere.
+    bar = dataclasses.replace(config, eval_threshold=0.99, refine_threshold=0.99, fallback_filter=None)
+    none, reproduced = replay_alternative(run.log, objects, method, make_method("supergrasp", model=model, db=small_db,
+                                                                                 config=bar), CONFIG)
+    assert reproduced and none and all(s.outcome == "none" and s.kind == "none" and not s.same for s in none)
+    with pytest.raises(ValueError, match="alternative"):
+        replay_alternative(run.log, objects, method, make_method("oracle-topdown"), CONFIG)
 
 
 @pytest.mark.skipif(METHODS["contact-graspnet"].unavailable_reason() is not None,

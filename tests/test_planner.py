@@ -691,6 +691,45 @@ def test_perturbed_poses_move_and_turn_the_hand_in_its_own_frame():
         assert np.degrees(np.arctan2(out[k, :3, 0] @ y, out[k, :3, 0] @ rotation[:, 0])) == pytest.approx(sign * 10.0, abs=1e-3)
 
 
+def test_the_second_plan_also_runs_for_a_grasp_nothing_was_compared_with(small_db, scene):
+    """`PlannerConfig.fallback_for`: when the first plan's grasp was the only passing candidate, the second
+    plan (looser filters: more candidates) runs too, and its choice replaces the first's when it passed two
+    or more; a second plan that compares nothing leaves the first plan's grasp."""
+    from sgjax.stage1.filters import FilterConfig
+
+    model = ERNet(TINY, rngs=nnx.Rngs(0))  # untrained: candidates score apart
+    strict = dataclasses.replace(CONFIG.stage1, filter=FilterConfig(min_points=150))
+    loose = FilterConfig(min_points=25)
+
+    def passing_scores(stage1):  # the valid candidates' evaluations, best first
+        plan = Planner(model, small_db, dataclasses.replace(CONFIG, stage1=stage1)).plan(*scene, viewpoint=CAMERA)
+        return np.sort(plan.scores["eval_prob"][plan.scores["valid"]])[::-1]
+
+    first, second = passing_scores(strict), passing_scores(dataclasses.replace(strict, filter=loose))
+    # The premise on this scene: the looser filter keeps more, and a second candidate above the first's runner-up.
+    assert len(second) > len(first) >= 2 and second[1] > first[1]
+    bar = float((first[1] + min(first[0], second[1])) / 2)  # one passing candidate in the first plan, two in the second
+    config = dataclasses.replace(CONFIG, stage1=strict, eval_threshold=bar, fallback_filter=loose)
+    alone = Planner(model, small_db, config).plan(*scene, viewpoint=CAMERA)
+    assert alone.ok and not alone.fallback and planner_mod.uncompared(alone, bar) == "lone"
+    again = Planner(model, small_db, dataclasses.replace(config, fallback_for=("lone",))).plan(*scene, viewpoint=CAMERA)
+    assert again.ok and again.fallback and planner_mod.uncompared(again, bar) is None
+    # ... the grasp a planner with the looser filter chooses
+    direct = Planner(model, small_db, dataclasses.replace(config, stage1=dataclasses.replace(strict, filter=loose))).plan(
+        *scene, viewpoint=CAMERA)
+    np.testing.assert_array_equal(again.pose, direct.pose)
+    # A second plan that compares nothing (the same filter) leaves the first plan's grasp, timed with both.
+    same = Planner(model, small_db, dataclasses.replace(config, fallback_filter=strict.filter, fallback_for=("lone", "refined")))
+    kept = same.plan(*scene, viewpoint=CAMERA)
+    assert kept.ok and not kept.fallback and planner_mod.uncompared(kept, bar) == "lone"
+    np.testing.assert_array_equal(kept.pose, alone.pose)
+    assert same._fallback_stages  # the second plan ran
+    with pytest.raises(ValueError, match="fallback_for takes"):
+        dataclasses.replace(CONFIG, fallback_filter=loose, fallback_for=("compared",))
+    with pytest.raises(ValueError, match="fallback_for .* needs a fallback_filter"):
+        dataclasses.replace(CONFIG, fallback_for=("lone",))
+
+
 def test_robust_scores_judge_only_the_best_passing_candidates():
     eval_prob = np.array([0.95, 0.6, 0.9, 0.99, 0.8, np.nan], np.float32)
     valid = np.array([True, True, True, False, True, True])
@@ -855,6 +894,50 @@ def test_robust_choice_counts_perturbed_poses_that_meet_a_neighbours_fit_as_zero
     expected = (s["eval_prob"][judged] + np.where(hits, 0.0, around).sum(1)) / 6
     np.testing.assert_allclose(s["robust_score"][judged], expected, atol=2e-5)
     np.testing.assert_allclose(plain.scores["robust_score"][judged], (s["eval_prob"][judged] + around.sum(1)) / 6, atol=2e-5)
+
+
+def test_preferred_keeps_the_robust_scores_of_the_clear_candidates_only():
+    scores = {"robust_score": np.array([0.9, np.nan, 0.8, 0.85], np.float32), "eval_prob": np.array([0.9, 0.95, 0.8, 0.85], np.float32)}
+    some = planner_mod.preferred(scores, np.array([False, True, True, False]))
+    np.testing.assert_array_equal(some["robust_score"], np.array([np.nan, np.nan, 0.8, np.nan], np.float32))
+    assert some["eval_prob"] is scores["eval_prob"]
+    # none clear, or every judged one clear (an unjudged one's mark does not count): nothing to prefer
+    assert planner_mod.preferred(scores, np.zeros(4, bool)) is scores
+    assert planner_mod.preferred(scores, np.array([True, False, True, True])) is scores
+
+
+def test_robust_choice_prefers_candidates_clear_of_the_obstacles_by_the_margin(small_db, scene):
+    """`RobustChoice.prefer_clearance`: a judged candidate is clear when no obstacle point lies in its
+    hand (grown by the margin, swept back over the approach) or between its fingers, and the choice is the
+    best robust mean among the clear ones."""
+    from sgjax.stage1.filters import FilterConfig
+
+    margin = 0.05  # wide, so that on this scene the best robust mean is not clear
+    stage1 = dataclasses.replace(CONFIG.stage1, filter=FilterConfig(shadow_depth=0.0))  # the boxes alone
+    config = dataclasses.replace(CONFIG, stage1=stage1, eval_threshold=0.0, neighbour_fits=None,
+                                 robust=planner_mod.RobustChoice(prefer_clearance=margin))
+    model = ERNet(TINY, rngs=nnx.Rngs(0))  # untrained: candidates score apart
+    plan = Planner(model, small_db, config).plan(*scene, viewpoint=CAMERA)
+    plain = Planner(model, small_db, dataclasses.replace(config, robust=planner_mod.RobustChoice())).plan(*scene, viewpoint=CAMERA)
+    scores = plan.scores
+    judged = np.flatnonzero(np.isfinite(scores["robust_score"]))
+    points, labels = scene
+    for index in judged:
+        o = int(scores["object"][index])
+        cands = plan.candidates[o]
+        pose, width = cands.poses[scores["object_candidate"][index]].astype(np.float64), cands.widths[scores["object_candidate"][index]]
+        other = points[labels != scores["target"][index]]  # the table too: no support plane set
+        local = (other - pose[:3, 3]) @ pose[:3, :3]
+        regions = [*gripper_mod.hand_boxes(SPEC, width, margin, stage1.filter.approach_clearance), gripper_mod.closing_box(SPEC, width)]
+        hit = any(np.asarray(gripper_mod.in_box(local[:, 0], local[:, 1], local[:, 2], box)).any() for box in regions)
+        assert scores["clear"][index] == (not hit), index
+    clear = scores["clear"][judged]
+    assert clear.any() and not clear.all()  # the premise on this scene
+    best_clear = judged[clear][np.argmax(scores["robust_score"][judged[clear]])]
+    assert plan.candidate_index == best_clear
+    assert plain.candidate_index == judged[np.argmax(scores["robust_score"][judged])] != best_clear
+    with pytest.raises(ValueError, match="prefer_clearance"):
+        planner_mod.RobustChoice(prefer_clearance=-0.001)
 
 
 def test_robust_choice_config_errors():
