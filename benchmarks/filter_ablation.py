@@ -46,6 +46,8 @@ VARIANTS = {
     "paper": {"shadow_depth": 0.0, "obstacle_margin": 0.0, "hidden_contacts": "accept"},  # = labelling's stage1_paper, with (iv)
     # A second plan with only the filters beyond the paper's off (the default also loosens (ii), (iii)).
     "fallback-paper": {"fallback": {"shadow_depth": 0.0, "hidden_contacts": "accept"}},
+    # the second plan's looser (ii), (iii) and hidden contacts, with the first plan's camera-ray shadows kept
+    "fallback-shadows": {"fallback": {"hidden_contacts": "accept", "max_normal_angle_deg": 30.0, "min_points": 25}},
     # Not a filter: the matching also tries the fit's axes relabelled (`MatchConfig.relabel_axes`).
     "relabel-axes": {"match": {"relabel_axes": True}},
     "relabel-extra": {"match": {"relabel_extra": 5}},  # ... only as 5 extra matches after the paper's K2
@@ -71,7 +73,9 @@ VARIANTS = {
     "fit-grasps-second": {"planner": {"fit_grasps": FitGraspConfig(first_plan=False)}},
     # ... only straight across the fit's horizontal axes (no ±15° turns): on the lone lens the grasps
     # 0-10° off its short axis held 90 %, 10-20° off 62 % (docs/benchmark.md, "Grasps on the fit itself").
+    # The default since 2026-12-05; "fit-grasps-turned" is the default before it (also turned by ±15°).
     "fit-grasps-straight": {"planner": {"fit_grasps": FitGraspConfig(yaws_deg=(0.0,))}},
+    "fit-grasps-turned": {"planner": {"fit_grasps": FitGraspConfig(yaws_deg=(-15.0, 0.0, 15.0))}},
     # Not a filter: the best-evaluated candidate executed, not the one among the 12 best whose score holds
     # up at small perturbations of its pose (`PlannerConfig.robust`, `RobustChoice`; default since
     # 2026-12-03 night); "robust" names the default's choice explicitly (the runs that measured it).

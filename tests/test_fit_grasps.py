@@ -28,6 +28,10 @@ def lying(scale, eps, yaw_deg: float, centre_xy=(0.1, -0.05)) -> Superquadric:
                                jnp.asarray([*centre_xy, scale[2]], jnp.float32))
 
 
+# The grasps turned by 15 degrees about the normal as well (the default is straight across only).
+TURNED = FitGraspConfig(yaws_deg=(-15.0, 0.0, 15.0))
+
+
 def tips(poses) -> np.ndarray:
     """Fingertip centres [F, 3] of gripper poses [F, 4, 4]."""
     poses = np.asarray(poses)
@@ -37,7 +41,7 @@ def tips(poses) -> np.ndarray:
 def test_grasps_close_across_the_horizontal_axes_below_the_centre():
     scale = (0.045, 0.025, 0.0115)
     sq = lying(scale, (1.3, 0.8), 30.0)
-    poses, widths, valid = (np.asarray(a) for a in fit_top_down_grasps(sq, TABLE, SPEC, FitGraspConfig()))
+    poses, widths, valid = (np.asarray(a) for a in fit_top_down_grasps(sq, TABLE, SPEC, TURNED))
     assert poses.shape == (6, 4, 4) and widths.shape == valid.shape == (6,)
     # Axis-major: the 9 cm x axis is wider than the gripper at every yaw, the 5 cm y axis is not.
     assert valid.tolist() == [False] * 3 + [True] * 3
@@ -57,6 +61,11 @@ def test_grasps_close_across_the_horizontal_axes_below_the_centre():
     # Off the axis the superellipse is wider, but less than its bounding box.
     box = 2 * (scale[0] * np.sin(np.radians(15)) + scale[1] * np.cos(np.radians(15))) + 2 * SPEC.contact_threshold
     assert widths[4] < widths[3] < box
+    # The default: straight across each axis only, the same grasps as the turned set's middle ones.
+    straight = [np.asarray(a) for a in fit_top_down_grasps(sq, TABLE, SPEC, FitGraspConfig())]
+    assert FitGraspConfig().count == 2 and straight[0].shape == (2, 4, 4)
+    for got, want in zip(straight, (poses[[1, 4]], widths[[1, 4]], valid[[1, 4]])):
+        np.testing.assert_allclose(got, want, atol=1e-6)
 
 
 def test_no_table_or_a_tall_object():
@@ -106,7 +115,7 @@ def lens_view(n: int = 900, seed: int = 0) -> np.ndarray:
 def test_stage1_offers_them_first_and_leaves_the_transferred_grasps_as_they_were(small_db):
     cloud = lens_view()
     plain = Stage1(small_db, Stage1Config())(cloud, viewpoint=CAMERA, support_plane=tuple(np.asarray(TABLE)))
-    stage = Stage1(small_db, Stage1Config(fit_grasps=FitGraspConfig()))
+    stage = Stage1(small_db, Stage1Config(fit_grasps=TURNED))
     with_fit = stage(cloud, viewpoint=CAMERA, support_plane=tuple(np.asarray(TABLE)))
     own = with_fit.primitive_id < 0
     assert own.any() and own[: own.sum()].all()  # first, ahead of every transferred grasp
@@ -119,9 +128,9 @@ def test_stage1_offers_them_first_and_leaves_the_transferred_grasps_as_they_were
     np.testing.assert_allclose(with_fit.poses[rest], plain.poses, atol=1e-6)
     np.testing.assert_array_equal(with_fit.primitive_id[rest], plain.primitive_id)
     added = with_fit.counts["transferred"] - plain.counts["transferred"]  # the fit's grasps that are valid
-    assert own.sum() <= added <= FitGraspConfig().count // 2  # the lens's 8 cm axis is too wide to close across
+    assert own.sum() <= added <= TURNED.count // 2  # the lens's 8 cm axis is too wide to close across
     # The normal test (iii) would remove grasps the fit's own construction keeps.
-    tested = Stage1(small_db, Stage1Config(fit_grasps=FitGraspConfig(normal_test=True)), share=stage)
+    tested = Stage1(small_db, Stage1Config(fit_grasps=dataclasses.replace(TURNED, normal_test=True)), share=stage)
     again = tested(cloud, viewpoint=CAMERA, support_plane=tuple(np.asarray(TABLE)))
     assert (again.primitive_id < 0).sum() < own.sum()
     assert dataclasses.replace(FitGraspConfig(), normal_test=True) == FitGraspConfig(normal_test=True)
