@@ -76,6 +76,8 @@ VARIANTS = {
     # The default since 2026-12-05; "fit-grasps-turned" is the default before it (also turned by ±15°).
     "fit-grasps-straight": {"planner": {"fit_grasps": FitGraspConfig(yaws_deg=(0.0,))}},
     "fit-grasps-turned": {"planner": {"fit_grasps": FitGraspConfig(yaws_deg=(-15.0, 0.0, 15.0))}},
+    # ... and chosen first: among the passing grasps on the fits when any passes (`PlannerConfig.prefer_fit_grasps`).
+    "prefer-fit-grasps": {"planner": {"prefer_fit_grasps": True}},
     # Not a filter: the best-evaluated candidate executed, not the one among the 12 best whose score holds
     # up at small perturbations of its pose (`PlannerConfig.robust`, `RobustChoice`; default since
     # 2026-12-03 night); "robust" names the default's choice explicitly (the runs that measured it).

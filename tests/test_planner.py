@@ -730,6 +730,34 @@ def test_the_second_plan_also_runs_for_a_grasp_nothing_was_compared_with(small_d
         dataclasses.replace(CONFIG, fallback_for=("lone",))
 
 
+def test_a_passing_grasp_on_a_fit_is_chosen_first(small_db, scene):
+    """`PlannerConfig.prefer_fit_grasps`: the evaluated choice is the best-evaluated passing grasp on an
+    object's fit when one passes, and E-RNet's best otherwise."""
+    model = ERNet(TINY, rngs=nnx.Rngs(0))  # untrained: candidates score apart
+    # The table z = 0: the fit's grasps are made down to it.
+    config = dataclasses.replace(CONFIG, eval_threshold=0.0, support_plane=(0.0, 0.0, 1.0, 0.0))
+
+    def plan(**changes):
+        return Planner(model, small_db, dataclasses.replace(config, **changes)).plan(*scene, viewpoint=CAMERA)
+
+    plain, first = plan(), plan(prefer_fit_grasps=True)
+    scores = plain.scores
+    on_fit = np.array([plain.candidates[o].primitive_id[r] < 0 for o, r in zip(scores["object"], scores["object_candidate"])])
+    e = np.where(scores["valid"], scores["eval_prob"], -np.inf)
+    assert on_fit.any() and (~on_fit).any()
+    best_fit, best = int(np.argmax(np.where(on_fit, e, -np.inf))), int(np.argmax(e))
+    assert plain.kind == first.kind == "evaluated"
+    assert plain.candidate_index == best and not on_fit[best]  # the premise: E-RNet's best is a template
+    assert first.candidate_index == best_fit and first.score == pytest.approx(e[best_fit])
+    # No grasp on a fit passes the bar: E-RNet's best, as without the preference.
+    bar = float(e[best_fit])
+    assert np.max(e[~on_fit]) > bar
+    none = plan(prefer_fit_grasps=True, eval_threshold=bar)
+    np.testing.assert_array_equal(none.pose, plan(eval_threshold=bar).pose)
+    assert none.candidate_index == best
+    assert planner_mod.preferred_rows(np.array([0.9, 0.8]), np.array([True, False]), np.array([False, True]), 0.7).all()
+
+
 def test_robust_scores_judge_only_the_best_passing_candidates():
     eval_prob = np.array([0.95, 0.6, 0.9, 0.99, 0.8, np.nan], np.float32)
     valid = np.array([True, True, True, False, True, True])
