@@ -8,6 +8,10 @@ judges the best-evaluated candidates, the finalists; here each of them is execut
 one batched trial. That answers, on identical states and without the noise of diverging episodes,
 (a) how often some finalist would have succeeded (what a better choice could reach), and (b) how another
 rule over the finalists' scores would have done (`rule_successes`). The episode goes on as logged.
+
+The same walk over the logged states (`LoggedStates`) measures a change of the planner itself
+(`replay_alternative`): another planner plans every state too, and its grasp, where it differs, is
+executed from that state.
 """
 
 from __future__ import annotations
@@ -131,8 +135,8 @@ class LoggedStates:
 class LoggedState:
     """One logged attempt's state: attempt index, its log record, the observation, the replaying method's
     plan (the logged grasp), the scene, the failed poses so far avoid [F, 4, 4], the camera's position
-    viewpoint [3] and the plan's seed. target: the logged
-    object (None: no object between the fingers, no trial)."""
+    viewpoint [3] and the plan's seed. target: the logged object (None: no object between the fingers,
+    no trial)."""
 
     attempt: int
     record: dict
