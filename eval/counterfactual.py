@@ -118,17 +118,16 @@ class LoggedStates:
             if state.target is None:
                 failed.append(logged_pose)
                 continue
-            if state.executed is None:
+            if state.result is None:
                 state.simulate([])
-            if not state.executed[1]:
+            if not state.reproduced:
                 self.reproduced = False
                 return
-            result, index = state.executed[0], state.executed[2]
-            if result.label[index]:
+            if state.result.label[state.row]:
                 scene = scene_lib.remove_object(scene, state.target)
             else:
                 failed.append(logged_pose)
-                scene = scene_lib.after_trial(scene, result.final_qpos[index])
+                scene = scene_lib.after_trial(scene, state.result.final_qpos[state.row])
 
 
 @dataclasses.dataclass
@@ -147,7 +146,10 @@ class LoggedState:
     viewpoint: np.ndarray
     seed: int
     config: DeclutterConfig
-    executed: tuple | None = None  # (trial result, the logged outcome reproduced, its row)
+    # Set by `simulate`: the batched trial, the logged grasp's row in it, and whether it gave the logged outcome.
+    result: trial_lib.TrialResult | None = None
+    row: int = -1
+    reproduced: bool = False
 
     @property
     def target(self) -> int | None:
@@ -165,7 +167,7 @@ class LoggedState:
         """Execute rows [{"pose", "width", "target"}] (target not None) and the logged grasp from this state in
         one batched trial -> the rows' outcomes (`envs.trial.Outcome` names, lower case). A row marked
         "chosen" is the logged grasp itself (else it is added). Once per state."""
-        if self.executed is not None or self.target is None:
+        if self.result is not None or self.target is None:
             raise ValueError("simulate runs once per state, and only where the logged grasp had a trial")
         record = self.record
         rows = list(rows)
@@ -180,8 +182,8 @@ class LoggedState:
                                       np.asarray([r["width"] for r in rows]), backend=config.backend, config=config.trial,
                                       nthread=config.nthread)
         outcomes = [trial_lib.Outcome(int(o)).name.lower() for o in result.outcome]
-        same = outcomes[executed] == record["outcome"] and rows[executed]["target"] == self.target
-        self.executed = (result, same, executed)
+        self.result, self.row = result, executed
+        self.reproduced = outcomes[executed] == record["outcome"] and rows[executed]["target"] == self.target
         return outcomes[:given]
 
 
@@ -205,7 +207,7 @@ def replay_choices(log: dict, objects: Sequence, method, config: DeclutterConfig
         rows = _finalists(state) if "robust_score" in state.plan.scores else []
         simulated = [r for r in rows if r["target"] is not None]
         outcomes = state.simulate(simulated)
-        if not state.executed[1]:
+        if not state.reproduced:
             continue  # the replay stops there (`LoggedStates`)
         for row, outcome in zip(simulated, outcomes):
             row["outcome"] = outcome
@@ -266,7 +268,7 @@ def replay_alternative(log: dict, objects: Sequence, method, alternative,
         target = None if pose is None or same else state.lifted(pose, float(other.width))
         rows = [] if target is None else [{"pose": pose, "width": float(other.width), "target": target}]
         outcomes = state.simulate(rows)
-        if not state.executed[1]:
+        if not state.reproduced:
             continue  # the replay stops there
         outcome = state.record["outcome"] if same else "none" if pose is None else outcomes[0] if rows else NO_OBJECT
         states.append(AlternativeState(state.attempt, state.record["outcome"], plan_kind(state.plan, threshold), outcome,

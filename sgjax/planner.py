@@ -1232,10 +1232,10 @@ def preferred(scores: dict, prefer: np.ndarray) -> dict:
     but not all judged ones are (`RobustChoice.prefer_clearance`); else scores unchanged."""
     robust = np.asarray(scores["robust_score"], np.float32)
     judged = np.isfinite(robust)
-    prefer = np.asarray(prefer, bool) & judged
-    if not prefer.any() or prefer.sum() == judged.sum():
+    rows = preferred_rows(robust, judged, prefer, -np.inf)
+    if rows[judged].all():
         return scores
-    return {**scores, "robust_score": np.where(prefer, robust, np.nan).astype(np.float32)}
+    return {**scores, "robust_score": np.where(rows, robust, np.nan).astype(np.float32)}
 
 
 def passing_robust_choice(choice: dict, scores: dict, threshold: float, decide, judge_again) -> dict:
