@@ -35,8 +35,8 @@ class FitGraspConfig:
     yaws_deg: rotations of each horizontal axis about the plane's normal (0: across the axis itself).
         Default straight across only: on the lone lens-like object the grasps 0-10 deg off its short
         axis held 90 % of the time and 10-20 deg off 62 %, and in dense clutter of unseen objects, on
-        identical states, the ±15 deg turns E-RNet chose failed where the straight grasp held (13 of 35
-        changed choices turned from failures to successes, none the other way; docs/benchmark.md).
+        identical states, the ±15 deg turns E-RNet chose failed where the straight grasp held (28 failures
+        became successes and 7 successes failures over 1,434 states; docs/benchmark.md).
     heights: fingertip heights as fractions of the fit centre's height above the support plane (0.5:
         halfway between the table and the centre, below a rounded object's widest section).
     min_clearance: the fingertips stay at least this far above the plane (metres).
