@@ -796,7 +796,7 @@ class Planner:
     def _run(self, scene, objects, skipped, view, seed, start, avoid, memory=None) -> Plan:
         cfg = self.config
         plan = self._run_with(self.stage1, scene, objects, skipped, view, seed, start, avoid, memory)
-        again = not plan.ok or uncompared(plan, cfg.eval_threshold) in cfg.fallback_for
+        again = not plan.ok or (bool(cfg.fallback_for) and uncompared(plan, cfg.eval_threshold) in cfg.fallback_for)
         fallback = self._fallback_stage() if again else None
         if fallback is None:
             return plan
