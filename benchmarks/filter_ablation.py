@@ -78,6 +78,8 @@ VARIANTS = {
     "fit-grasps-turned": {"planner": {"fit_grasps": FitGraspConfig(yaws_deg=(-15.0, 0.0, 15.0))}},
     # ... and chosen first: among the passing grasps on the fits when any passes (`PlannerConfig.prefer_fit_grasps`).
     "prefer-fit-grasps": {"planner": {"prefer_fit_grasps": True}},
+    # ... only in the second plan, whose transferred grasps are the marginal ones (the first plan: E-RNet's order).
+    "prefer-fit-grasps-second": {"planner": {"prefer_fit_grasps": "second"}},
     # Not a filter: the best-evaluated candidate executed, not the one among the 12 best whose score holds
     # up at small perturbations of its pose (`PlannerConfig.robust`, `RobustChoice`; default since
     # 2026-12-03 night); "robust" names the default's choice explicitly (the runs that measured it).

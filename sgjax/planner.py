@@ -260,6 +260,9 @@ class PlannerConfig:
         disturbance, and E-RNet's scores do not tell the two apart. False (default): E-RNet's order alone;
         measured, the preference moved the failures rather than removing them (dense unseen 70 scenes
         GSR 90.6 / TSR 89.5 % against 89.5 / 91.4 %, seen-20 -5 GSR points on 12 scenes; docs/benchmark.md).
+        "second": only in the second plan (`fallback_filter`), whose transferred grasps are the marginal
+        ones (dense unseen, 70 scenes: the second plan's transferred grasps succeeded 69 % of 112, its
+        fit's grasps 7 of 7), while the first plan's choice stays E-RNet's.
     reuse_tolerance: with a `Stage1Memory` passed to `plan`, an object whose cloud is the same as when
         Stage 1 last ran on it, within this many metres (`pointcloud.same_cloud`), keeps those candidates
         and is only tested against the obstacles of now (`Stage1.rescene`). 0: only identical clouds.
@@ -292,7 +295,7 @@ class PlannerConfig:
     lever_weight: float = 0.0
     robust: RobustChoice | None = RobustChoice()
     failed_last: float | None = None
-    prefer_fit_grasps: bool = False
+    prefer_fit_grasps: bool | str = False
 
     @property
     def first_stage1(self) -> Stage1Config:
@@ -331,6 +334,10 @@ class PlannerConfig:
         if self.robust is not None and self.robust.rows > self.max_stage2_candidates:
             raise ValueError(f"robust.top x {PERTURBATIONS} = {self.robust.rows} perturbed poses exceed "
                              f"max_stage2_candidates={self.max_stage2_candidates}")
+        if self.prefer_fit_grasps not in (False, True, "second"):
+            raise ValueError(f"prefer_fit_grasps must be False, True or 'second', got {self.prefer_fit_grasps!r}")
+        if self.prefer_fit_grasps != "second":
+            object.__setattr__(self, "prefer_fit_grasps", bool(self.prefer_fit_grasps))
         object.__setattr__(self, "fallback_for", tuple(self.fallback_for))
         unknown = set(self.fallback_for) - set(UNCOMPARED)
         if unknown:
@@ -801,7 +808,7 @@ class Planner:
         if fallback is None:
             return plan
         fits = cfg.neighbour_fits is not None and cfg.neighbour_fits.in_fallback
-        second = self._run_with(fallback, scene, objects, skipped, view, seed, start, avoid, memory, fits)
+        second = self._run_with(fallback, scene, objects, skipped, view, seed, start, avoid, memory, fits, second=True)
         second.reused += plan.reused
         # After a grasp the first plan found: only a compared choice replaces it.
         if second.ok and (not plan.ok or uncompared(second, cfg.eval_threshold) is None):
@@ -849,20 +856,24 @@ class Planner:
         return out, len(kept)
 
     def _run_with(self, stage1: Stage1, scene, objects, skipped, view, seed, start, avoid, memory=None,
-                  fits: bool | str = True) -> Plan:
+                  fits: bool | str = True, second: bool = False) -> Plan:
         """One plan with this Stage 1; fits: whether the neighbours' fits are obstacles (`neighbour_fits`):
         True, False, or "prefer" (the candidates that pass the test first; all of them when those give
-        no grasp, `NeighbourFitConfig.in_fallback`)."""
+        no grasp, `NeighbourFitConfig.in_fallback`); second: this is the second plan (`fallback_filter`)."""
+        prefer_fit = self.config.prefer_fit_grasps is True or (second and self.config.prefer_fit_grasps == "second")
         compiled = _compile_count()
         candidates, reused = self._stage1(stage1, objects, view, seed, memory)
         if not fits or self.config.neighbour_fits is None:
-            plan = self._choose(stage1, scene, objects, skipped, view, seed, start, avoid, candidates, compiled)
+            plan = self._choose(stage1, scene, objects, skipped, view, seed, start, avoid, candidates, compiled,
+                                prefer_fit=prefer_fit)
         else:
             clear, fitted = self._without_fit_collisions(stage1, candidates, objects, seed)
-            plan = self._choose(stage1, scene, objects, skipped, view, seed, start, avoid, clear, compiled, fitted)
+            plan = self._choose(stage1, scene, objects, skipped, view, seed, start, avoid, clear, compiled, fitted,
+                                prefer_fit=prefer_fit)
             if fits == "prefer" and not plan.ok and sum(map(len, clear)) < sum(map(len, candidates)):
                 # What the test removed may be all there is: plan as without it rather than find nothing.
-                plan = self._choose(stage1, scene, objects, skipped, view, seed, start, avoid, candidates, compiled)
+                plan = self._choose(stage1, scene, objects, skipped, view, seed, start, avoid, candidates, compiled,
+                                prefer_fit=prefer_fit)
         plan.reused = reused
         return plan
 
@@ -881,8 +892,9 @@ class Planner:
                                                  cfg.stage2_sizes), fitted
 
     def _choose(self, stage1: Stage1, scene, objects, skipped, view, seed, start, avoid, candidates, compiled,
-                fitted: tuple | None = None) -> Plan:
-        """Stage 2 and the decision on Stage 1's candidates (one Candidates per object)."""
+                fitted: tuple | None = None, prefer_fit: bool = False) -> Plan:
+        """Stage 2 and the decision on Stage 1's candidates (one Candidates per object); prefer_fit: the
+        passing grasps on the fits first (`PlannerConfig.prefer_fit_grasps`, in this plan)."""
         cfg = self.config
         labels = [label for label, _, _ in objects]
         t1 = time.perf_counter()
@@ -945,7 +957,7 @@ class Planner:
             scores["failures"] = failure_counts(avoid, clouds, cfg.spec, cfg.failed_last)[obj]
             allowed = least_failed(scores["eval_prob"], scores["valid"], scores["failures"], cfg.eval_threshold)
             choice = evaluated_choice(choice, scores["eval_prob"], scores["valid"] & allowed, cfg.eval_threshold)
-        if cfg.prefer_fit_grasps and int(choice["kind"]) == KIND_EVALUATED:
+        if prefer_fit and int(choice["kind"]) == KIND_EVALUATED:
             on_fit = np.array([candidates[o].primitive_id[r] < 0 for o, r in zip(obj, row)], bool).reshape(-1)
             usable = scores["valid"] if allowed is None else scores["valid"] & allowed
             first = preferred_rows(scores["eval_prob"], usable, on_fit, cfg.eval_threshold)

@@ -756,6 +756,20 @@ def test_a_passing_grasp_on_a_fit_is_chosen_first(small_db, scene):
     np.testing.assert_array_equal(none.pose, plan(eval_threshold=bar).pose)
     assert none.candidate_index == best
     assert planner_mod.preferred_rows(np.array([0.9, 0.8]), np.array([True, False]), np.array([False, True]), 0.7).all()
+    # "second": the first plan's choice is E-RNet's; the second plan's (the first finds nothing) prefers.
+    np.testing.assert_array_equal(plan(prefer_fit_grasps="second").pose, plain.pose)
+    from sgjax.stage1.filters import FilterConfig
+
+    starved = dict(stage1=dataclasses.replace(config.stage1, filter=FilterConfig(min_points=5000)), fallback_filter=FilterConfig())
+    again, again_first = plan(prefer_fit_grasps="second", **starved), plan(prefer_fit_grasps=True, **starved)
+    assert again.fallback and again_first.fallback
+    assert again.candidate_index == again_first.candidate_index and again.pose is not None
+    np.testing.assert_array_equal(again.pose, again_first.pose)
+    second_fit = np.array([again.candidates[o].primitive_id[r] < 0
+                           for o, r in zip(again.scores["object"], again.scores["object_candidate"])])
+    assert second_fit[again.candidate_index] and not second_fit[plan(**starved).candidate_index]
+    with pytest.raises(ValueError, match="prefer_fit_grasps"):
+        dataclasses.replace(CONFIG, prefer_fit_grasps="first")
 
 
 def test_robust_scores_judge_only_the_best_passing_candidates():
