@@ -2,7 +2,7 @@
 state the planner's finalists simulated, not only the grasp it executed.
 
 The harness is deterministic (`eval.declutter`), so a SuperGrasp scene log can be replayed state by
-state (`eval.replay`), and at each state the same planner (same seed, same Stage-1 memory, same failed
+state (`eval.replay.LoggedStates`), and at each state the same planner (same seed, same Stage-1 memory, same failed
 poses to avoid) plans again and chooses the logged grasp. Its robust choice (`PlannerConfig.robust`)
 judges the best-evaluated candidates, the finalists; here each of them is executed from that state in
 one batched trial. That answers, on identical states and without the noise of diverging episodes,
@@ -23,13 +23,10 @@ from pathlib import Path
 
 import numpy as np
 
-from envs import camera as camera_lib
-from envs import scene as scene_lib
-from envs import trial as trial_lib
 from eval import declutter
 from eval.benchmark import resolve_objects
-from eval.declutter import NO_OBJECT, DeclutterConfig, closing_region_objects, plan_seed, rigid_pose
-from eval.replay import logged_scene
+from eval.declutter import NO_OBJECT, DeclutterConfig, rigid_pose
+from eval.replay import LoggedState, LoggedStates
 from sgjax.planner import uncompared
 from sgjax.utils.files import atomic_write_text
 
@@ -66,7 +63,7 @@ class ChoiceState:
     finalists: tuple[Finalist, ...]
 
 
-def _finalists(state: "LoggedState") -> list[dict]:
+def _finalists(state: LoggedState) -> list[dict]:
     """The judged candidates of the state's plan (robust_score finite) with the object each would lift."""
     plan = state.plan
     scores = plan.scores
@@ -82,109 +79,6 @@ def _finalists(state: "LoggedState") -> list[dict]:
                     "fit_grasp": bool(cands.primitive_id[row] < 0), "chosen": plan.kind == "evaluated" and int(index) == int(plan.candidate_index)})
     return out
 
-
-class LoggedStates:
-    """The states of a SuperGrasp scene log, replayed: iterate to get each attempt's `LoggedState` (the
-    observation, and `method`'s plan of it, which must be the logged grasp); the caller may simulate
-    other grasps from it (`LoggedState.simulate`), and the episode then goes on as logged. `reproduced`
-    turns False, and the iteration stops, when a plan chose another grasp than the log's or a replayed
-    outcome differed (another planner, checkpoint or machine's numerics)."""
-
-    def __init__(self, log: dict, objects: Sequence, method, config: DeclutterConfig | None = None):
-        if not hasattr(method, "full_plan"):
-            raise ValueError("a replay of logged states needs a SuperGrasp planner method (its full_plan)")
-        self.log, self.objects, self.method = log, objects, method
-        self.config = config or DeclutterConfig()
-        self.reproduced = True
-
-    def __iter__(self):
-        config = self.config
-        scene = logged_scene(self.log, self.objects, config)
-        self.method.begin_scene()
-        s_seed = int(self.log["scene_seed"])
-        viewpoint = np.asarray(config.camera.position, np.float64)
-        failed: list[np.ndarray] = []
-        for record in self.log["attempts"]:
-            k = int(record["attempt"])
-            obs = camera_lib.observe(scene, config.camera, seed=s_seed + k)
-            avoid = np.asarray(failed, np.float64).reshape(-1, 4, 4)
-            plan = self.method.full_plan(obs.points, obs.point_labels, viewpoint, plan_seed(s_seed, k), avoid)
-            logged_pose = np.asarray(record["pose"], np.float64)
-            if plan.pose is None or not np.allclose(rigid_pose(plan.pose, "supergrasp"), logged_pose, atol=1e-9):
-                self.reproduced = False
-                return
-            state = LoggedState(k, record, obs, plan, scene, avoid, viewpoint, plan_seed(s_seed, k), config)
-            yield state
-            if state.target is None:
-                failed.append(logged_pose)
-                continue
-            if state.result is None:
-                state.simulate([])
-            if not state.reproduced:
-                self.reproduced = False
-                return
-            if state.result.label[state.row]:
-                scene = scene_lib.remove_object(scene, state.target)
-            else:
-                failed.append(logged_pose)
-                scene = scene_lib.after_trial(scene, state.result.final_qpos[state.row])
-
-
-@dataclasses.dataclass
-class LoggedState:
-    """One logged attempt's state: attempt index, its log record, the observation, the replaying method's
-    plan (the logged grasp), the scene, the failed poses so far avoid [F, 4, 4], the camera's position
-    viewpoint [3] and the plan's seed. target: the logged object (None: no object between the fingers,
-    no trial)."""
-
-    attempt: int
-    record: dict
-    obs: object
-    plan: object
-    scene: scene_lib.Scene
-    avoid: np.ndarray
-    viewpoint: np.ndarray
-    seed: int
-    config: DeclutterConfig
-    # Set by `simulate`: the batched trial, the logged grasp's row in it, and whether it gave the logged outcome.
-    result: trial_lib.TrialResult | None = None
-    row: int = -1
-    reproduced: bool = False
-
-    @property
-    def target(self) -> int | None:
-        record = self.record
-        return None if record["outcome"] == NO_OBJECT or record["target"] is None else int(record["target"])
-
-    def lifted(self, pose: np.ndarray, width: float) -> int | None:
-        """The object the harness would lift with `pose` [4, 4] (float64, `rigid_pose`): the present one
-        with the most observed points in the closing region; None: none (no trial)."""
-        counts = {k: v for k, v in closing_region_objects(self.obs.points, self.obs.point_labels, pose, width,
-                                                          self.config.gripper).items() if self.scene.present[k]}
-        return max(counts, key=lambda k: (counts[k], -k)) if counts else None
-
-    def simulate(self, rows: list[dict]) -> list[str]:
-        """Execute rows [{"pose", "width", "target"}] (target not None) and the logged grasp from this state in
-        one batched trial -> the rows' outcomes (`envs.trial.Outcome` names, lower case). A row marked
-        "chosen" is the logged grasp itself (else it is added). Once per state."""
-        if self.result is not None or self.target is None:
-            raise ValueError("simulate runs once per state, and only where the logged grasp had a trial")
-        record = self.record
-        rows = list(rows)
-        given = len(rows)
-        executed = next((i for i, r in enumerate(rows) if r.get("chosen")), None)
-        if executed is None:
-            rows.append({"pose": np.asarray(record["pose"], np.float64), "width": float(record["width"]),
-                         "target": self.target})
-            executed = given
-        config = self.config
-        result = trial_lib.run_trials(self.scene, np.asarray([r["target"] for r in rows]), np.stack([r["pose"] for r in rows]),
-                                      np.asarray([r["width"] for r in rows]), backend=config.backend, config=config.trial,
-                                      nthread=config.nthread)
-        outcomes = [trial_lib.Outcome(int(o)).name.lower() for o in result.outcome]
-        self.result, self.row = result, executed
-        self.reproduced = outcomes[executed] == record["outcome"] and rows[executed]["target"] == self.target
-        return outcomes[:given]
 
 
 def replay_choices(log: dict, objects: Sequence, method, config: DeclutterConfig | None = None) -> tuple[list[ChoiceState], bool]:

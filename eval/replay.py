@@ -15,6 +15,10 @@ other environment: Contact-GraspNet's logs replay without torch):
 
 A replayed outcome that differs from the logged one (another version of the simulator or of the object
 meshes) ends that scene's replay: later states would no longer be the logged ones.
+
+`LoggedStates` is that walk over a log's states, for any study of them: with a SuperGrasp planner it
+also plans each state again (which must choose the logged grasp) and lets the caller simulate other
+grasps from the same state (`eval.counterfactual`); `replay_scene` is the walk without a planner.
 """
 
 from __future__ import annotations
@@ -27,7 +31,8 @@ import numpy as np
 from envs import camera as camera_lib
 from envs import scene as scene_lib
 from envs import trial as trial_lib
-from eval.declutter import NO_OBJECT, DeclutterConfig, logged_contacts, make_benchmark_scene
+from eval.declutter import (NO_OBJECT, DeclutterConfig, closing_region_objects, logged_contacts, make_benchmark_scene,
+                           plan_seed, rigid_pose)
 from sgjax.geometry.gripper import GripperSpec, hand_boxes, in_box
 
 
@@ -99,6 +104,114 @@ def logged_scene(log: dict, objects: Sequence, config: DeclutterConfig) -> scene
     return scene
 
 
+class LoggedStates:
+    """The states of a scene log, replayed: iterate to get each attempt's `LoggedState` (the observation,
+    and with a `method` its plan of it, which must be the logged grasp); the caller may simulate other
+    grasps from it (`LoggedState.simulate`), and the episode then goes on as logged. `reproduced` turns
+    False, and the iteration stops, when a plan chose another grasp than the log's or a replayed outcome
+    differed (another planner, checkpoint or machine's numerics). method None: no plans (`plan` None),
+    the logged grasps alone, so any method's log replays (Contact-GraspNet's without torch)."""
+
+    def __init__(self, log: dict, objects: Sequence, method=None, config: DeclutterConfig | None = None):
+        if method is not None and not hasattr(method, "full_plan"):
+            raise ValueError("a replay of logged states with a planner needs a SuperGrasp planner method (its full_plan)")
+        self.log, self.objects, self.method = log, objects, method
+        self.config = config or DeclutterConfig()
+        self.reproduced = True
+
+    def __iter__(self):
+        config = self.config
+        scene = logged_scene(self.log, self.objects, config)
+        if self.method is not None:
+            self.method.begin_scene()
+        s_seed = int(self.log["scene_seed"])
+        viewpoint = np.asarray(config.camera.position, np.float64)
+        failed: list[np.ndarray] = []
+        for record in self.log["attempts"]:
+            k = int(record["attempt"])
+            obs = camera_lib.observe(scene, config.camera, seed=s_seed + k)
+            avoid = np.asarray(failed, np.float64).reshape(-1, 4, 4)
+            logged_pose = np.asarray(record["pose"], np.float64)
+            plan = None
+            if self.method is not None:
+                plan = self.method.full_plan(obs.points, obs.point_labels, viewpoint, plan_seed(s_seed, k), avoid)
+                if plan.pose is None or not np.allclose(rigid_pose(plan.pose, "supergrasp"), logged_pose, atol=1e-9):
+                    self.reproduced = False
+                    return
+            state = LoggedState(k, record, obs, plan, scene, avoid, viewpoint, plan_seed(s_seed, k), config)
+            yield state
+            if state.target is None:
+                failed.append(logged_pose)
+                continue
+            if state.result is None:
+                state.simulate([])
+            if not state.reproduced:
+                self.reproduced = False
+                return
+            if state.result.label[state.row]:
+                scene = scene_lib.remove_object(scene, state.target)
+            else:
+                failed.append(logged_pose)
+                scene = scene_lib.after_trial(scene, state.result.final_qpos[state.row])
+
+
+@dataclasses.dataclass
+class LoggedState:
+    """One logged attempt's state: attempt index, its log record, the observation, the replaying method's
+    plan (the logged grasp; None without a method), the scene, the failed poses so far avoid [F, 4, 4], the camera's position
+    viewpoint [3] and the plan's seed. target: the logged object (None: no object between the fingers,
+    no trial)."""
+
+    attempt: int
+    record: dict
+    obs: object
+    plan: object
+    scene: scene_lib.Scene
+    avoid: np.ndarray
+    viewpoint: np.ndarray
+    seed: int
+    config: DeclutterConfig
+    # Set by `simulate`: the batched trial, the logged grasp's row in it, and whether it gave the logged outcome.
+    result: trial_lib.TrialResult | None = None
+    row: int = -1
+    reproduced: bool = False
+
+    @property
+    def target(self) -> int | None:
+        record = self.record
+        return None if record["outcome"] == NO_OBJECT or record["target"] is None else int(record["target"])
+
+    def lifted(self, pose: np.ndarray, width: float) -> int | None:
+        """The object the harness would lift with `pose` [4, 4] (float64, `rigid_pose`): the present one
+        with the most observed points in the closing region; None: none (no trial)."""
+        counts = {k: v for k, v in closing_region_objects(self.obs.points, self.obs.point_labels, pose, width,
+                                                          self.config.gripper).items() if self.scene.present[k]}
+        return max(counts, key=lambda k: (counts[k], -k)) if counts else None
+
+    def simulate(self, rows: list[dict]) -> list[str]:
+        """Execute rows [{"pose", "width", "target"}] (target not None) and the logged grasp from this state in
+        one batched trial -> the rows' outcomes (`envs.trial.Outcome` names, lower case). A row marked
+        "chosen" is the logged grasp itself (else it is added). Once per state."""
+        if self.result is not None or self.target is None:
+            raise ValueError("simulate runs once per state, and only where the logged grasp had a trial")
+        record = self.record
+        rows = list(rows)
+        given = len(rows)
+        executed = next((i for i, r in enumerate(rows) if r.get("chosen")), None)
+        if executed is None:
+            rows.append({"pose": np.asarray(record["pose"], np.float64), "width": float(record["width"]),
+                         "target": self.target})
+            executed = given
+        config = self.config
+        result = trial_lib.run_trials(self.scene, np.asarray([r["target"] for r in rows]), np.stack([r["pose"] for r in rows]),
+                                      np.asarray([r["width"] for r in rows]), backend=config.backend, config=config.trial,
+                                      nthread=config.nthread)
+        outcomes = [trial_lib.Outcome(int(o)).name.lower() for o in result.outcome]
+        self.result, self.row = result, executed
+        self.reproduced = outcomes[executed] == record["outcome"] and rows[executed]["target"] == self.target
+        return outcomes[:given]
+
+
 def replay_scene(
     log: dict,
     objects: Sequence,
@@ -112,27 +225,26 @@ def replay_scene(
     """
     config = config or DeclutterConfig()
     spec = config.gripper
-    scene = logged_scene(log, objects, config)
     other_scene = None
     out = []
-    for record in log["attempts"]:
-        if record["outcome"] == NO_OBJECT or record["target"] is None:
-            out.append(ReplayedAttempt(int(record["attempt"]), None, record["outcome"], NO_OBJECT, {}))
+    for state in LoggedStates(log, objects, None, config):
+        record = state.record
+        target = state.target
+        if target is None:
+            out.append(ReplayedAttempt(state.attempt, None, record["outcome"], NO_OBJECT, {}))
             continue
-        target = int(record["target"])
-        if not scene.present[target]:
+        if not state.scene.present[target]:
             raise ValueError(f"attempt {record['attempt']}: target {target} is not on the table in the replay")
         pose = np.asarray(record["pose"], np.float64)
         width = float(record["width"])
-        result = trial_lib.run_trials(scene, target, pose[None], np.array([width]), backend=config.backend,
-                                      config=config.trial, nthread=config.nthread)
+        state.simulate([])
+        result = state.result  # the logged grasp alone: its row 0
         depth = spec.finger_length - float(result.object_in_gripper[0, trial_lib.Phase.CLOSE, 2])
-        obs = camera_lib.observe(scene, config.camera, seed=int(log["scene_seed"]) + int(record["attempt"]))
-        neighbour, table = _seen_in_hand(obs, target, pose, width, spec, config.trial.pregrasp_distance)
-        replayed = ReplayedAttempt(int(record["attempt"]), target, record["outcome"], _outcome(result),
-                                   _contacts(scene, result), depth, neighbour, table)
+        neighbour, table = _seen_in_hand(state.obs, target, pose, width, spec, config.trial.pregrasp_distance)
+        replayed = ReplayedAttempt(state.attempt, target, record["outcome"], _outcome(result),
+                                   _contacts(state.scene, result), depth, neighbour, table)
         if other is not None:
-            other_scene = scene_lib.with_gripper(scene, other, like=other_scene)
+            other_scene = scene_lib.with_gripper(state.scene, other, like=other_scene)
             other_pose = fingertips_aligned(pose, spec, other)
             other_result = trial_lib.run_trials(other_scene, target, other_pose[None],
                                                 np.array([min(width, other.max_opening)]), backend=config.backend,
@@ -140,12 +252,6 @@ def replay_scene(
             replayed = dataclasses.replace(replayed, other_outcome=_outcome(other_result),
                                            other_contacts=_contacts(other_scene, other_result))
         out.append(replayed)
-        if not replayed.reproduced:
-            break
-        if result.label[0]:
-            scene = scene_lib.remove_object(scene, target)
-        else:
-            scene = scene_lib.after_trial(scene, result.final_qpos[0])
     return out
 
 
