@@ -62,8 +62,10 @@ VARIANTS = {
     "neighbour-fits-5mm": {"planner": {"neighbour_fits": NeighbourFitConfig(margin=0.005)}},
     "neighbour-fits-both": {"planner": {"neighbour_fits": NeighbourFitConfig(in_fallback=True)}},  # in the second plan too
     "neighbour-fits-closing": {"planner": {"neighbour_fits": NeighbourFitConfig(closing=True)}},
-    # ... and in the second plan as a preference: the candidates that pass it, else all of them.
+    # ... and in the second plan as a preference: the candidates that pass it, else all of them (the
+    # default since 2026-12-05); "neighbour-fits-first-only": the first plan only (the default before).
     "neighbour-fits-prefer": {"planner": {"neighbour_fits": NeighbourFitConfig(in_fallback="prefer")}},
+    "neighbour-fits-first-only": {"planner": {"neighbour_fits": NeighbourFitConfig(in_fallback=False)}},
     # Not a filter: on the chosen object, the passing candidate with the shortest lever arm preferred
     # (`PlannerConfig.lever_weight`; 2 per metre was the best of 1-4 on the labelled mix-v5 + v6).
     "lever": {"planner": {"lever_weight": 2.0}},

@@ -222,9 +222,10 @@ class PlannerConfig:
     neighbour_fits: after Stage 1, remove every candidate whose hand (fingers and palm, swept back over
         the approach) meets another object's fitted superquadric grown by its margin
         (`sgjax.stage1.neighbours`: the sides of neighbours the camera did not see, which filter (iv)
-        cannot test); refined poses are checked against them too. In the first plan only, unless
-        `in_fallback`. None: off (the paper's filters). Default `NeighbourFitConfig()` (2 mm): see
-        docs/benchmark.md, "Neighbours' hidden sides".
+        cannot test); refined poses are checked against them too. In the second plan as a preference
+        (`NeighbourFitConfig.in_fallback`, default "prefer": the candidates clear of the fits first, all
+        of them when those give no grasp). None: off (the paper's filters). Default
+        `NeighbourFitConfig()` (2 mm): see docs/benchmark.md, "Neighbours' hidden sides".
     lever_weight: on the object of the best-evaluated candidate, execute the passing candidate (eval_prob
         above `eval_threshold`) with the highest eval_prob - lever_weight * lever arm
         (`gripper.lever_arm`: metres from the closing line to the object's visible centroid along the

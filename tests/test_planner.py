@@ -620,6 +620,10 @@ def test_second_plan_prefers_candidates_clear_of_the_neighbours_fits(small_db):
         np.testing.assert_array_equal(kept.poses, whole.poses[~hits])
         removed += hits.sum()
     assert removed > 0 and prefer.n_candidates == everything.n_candidates - removed
+    # The default is the preference; in_fallback=False (the default before 2026-12-05) plans with all.
+    default, first_only = plan(NeighbourFitConfig()), plan(NeighbourFitConfig(in_fallback=False))
+    assert default.n_candidates == prefer.n_candidates and first_only.n_candidates == everything.n_candidates
+    np.testing.assert_array_equal(default.pose, prefer.pose)
 
     blocking = dict(margin=0.3, max_overlap=1.0)  # every hand meets the other object's fit
     strict = plan(NeighbourFitConfig(in_fallback=True, **blocking))
