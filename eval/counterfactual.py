@@ -80,7 +80,6 @@ def _finalists(state: LoggedState) -> list[dict]:
     return out
 
 
-
 def replay_choices(log: dict, objects: Sequence, method, config: DeclutterConfig | None = None) -> tuple[list[ChoiceState], bool]:
     """Replay scene log `log` (a `supergrasp` run of `eval.declutter.run_scene` on `objects`) with
     `method` (the same planner, e.g. `eval.methods.make_method("supergrasp")`, with its robust choice),
