@@ -158,9 +158,9 @@ class LoggedStates:
 @dataclasses.dataclass
 class LoggedState:
     """One logged attempt's state: attempt index, its log record, the observation, the replaying method's
-    plan (the logged grasp; None without a method), the scene, the failed poses so far avoid [F, 4, 4], the camera's position
-    viewpoint [3] and the plan's seed. target: the logged object (None: no object between the fingers,
-    no trial)."""
+    plan (the logged grasp; None without a method), the scene, the failed poses so far avoid [F, 4, 4],
+    the camera's position viewpoint [3] and the plan's seed. target: the logged object (None: no object
+    between the fingers, no trial)."""
 
     attempt: int
     record: dict
