@@ -5,7 +5,7 @@ that touches few decisions shows without the noise of whole episodes (a 10-scene
 by its scenes alone); what it does to later states only a benchmark run shows.
 
     python benchmarks/planner_counterfactual.py LOG_DIR [LOG_DIR ...] --variant NAME [--objects SET]
-                                                [--out DIR] [--scenes 0-9]
+                                                [--out DIR] [--scenes 0-9] [--judge RUN_DIR]
 
 LOG_DIR: as for benchmarks/choice_counterfactual.py (today's default planner on this machine). NAME: a
 variant of benchmarks/filter_ablation.py. Per scene the states go to OUT/<variant>/<setting>/<seed
@@ -47,14 +47,16 @@ def main() -> None:
     parser.add_argument("--objects", help="object set or mesh folder instead of the setting's")
     parser.add_argument("--out", default="planner_counterfactual_out")
     parser.add_argument("--scenes", help="scene indices, e.g. 0-9 (default: every log in the folder)")
+    parser.add_argument("--judge", metavar="RUN_DIR", help="the variant's finalists judged by this network (`Planner(judge=)`)")
     args = parser.parse_args()
 
     method = make_method("supergrasp")
-    alternative = make_method("supergrasp", config=variant_config(args.variant))
+    alternative = make_method("supergrasp", config=variant_config(args.variant), judge=args.judge)
+    label = args.variant if not args.judge else f"{args.variant}+judge-{Path(args.judge).name}"
     replay = lambda log, objects: replay_alternative(log, objects, method, alternative)
     states: list[AlternativeState] = []
     stopped = 0
-    for name, scene_states, reproduced in replay_logs(args.logs, Path(args.out) / args.variant, replay, args.objects,
+    for name, scene_states, reproduced in replay_logs(args.logs, Path(args.out) / label, replay, args.objects,
                                                       set(scene_indices(args.scenes)) if args.scenes else None,
                                                       lambda d: AlternativeState(**d)):
         print(f"{name}: {len(scene_states)} states" + ("" if reproduced else " (stopped: differs from the log)"), flush=True)
@@ -62,7 +64,7 @@ def main() -> None:
         stopped += not reproduced
     if not states:
         raise SystemExit("no replayed state in these logs")
-    print(f"\n{args.variant} against the logged default on {len(states)} states ({stopped} scene(s) stopped early):\n")
+    print(f"\n{label} against the logged default on {len(states)} states ({stopped} scene(s) stopped early):\n")
     print(table(states))
 
 

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from envs import trial as trial_lib
 from eval import declutter
 from eval.benchmark import resolve_objects
 from eval.declutter import NO_OBJECT, DeclutterConfig, rigid_pose
@@ -111,6 +112,61 @@ def replay_choices(log: dict, objects: Sequence, method, config: DeclutterConfig
     return states, replay.reproduced
 
 
+@dataclasses.dataclass(frozen=True)
+class FinalistTrials:
+    """A state's finalists executed with their refinements, as training data for a judge: the attempt
+    index, the plan's seed, the Stage-2 cloud the plan cropped from (cloud [C, 3] float32,
+    `Planner.stage2_cloud`), and per simulated finalist (M of them): pose [M, 4, 4] (as executed), width
+    [M], target [M] (the object lifted) and target_name [M] (its name), outcome [M, 1 + K] (`envs.trial.Outcome` codes: the grasp, then
+    its K refinements, `envs.trial.run_grasp_with_refinements`), label [M, 1 + K] (success), eval_prob,
+    robust_score [M] (the planner's scores) and chosen [M] (the logged grasp)."""
+
+    attempt: int
+    seed: int
+    cloud: np.ndarray
+    pose: np.ndarray
+    width: np.ndarray
+    target: np.ndarray
+    target_name: tuple[str, ...]
+    outcome: np.ndarray
+    label: np.ndarray
+    eval_prob: np.ndarray
+    robust_score: np.ndarray
+    chosen: np.ndarray
+
+
+def replay_finalist_trials(log: dict, objects: Sequence, method,
+                           config: DeclutterConfig | None = None) -> tuple[list[FinalistTrials], bool]:
+    """Replay scene log `log` with `method` (the planner that made it, with its robust choice) and, at each
+    state where it judged two or more finalists that would lift an object, execute each of them and its
+    refinements from that state (`FinalistTrials`). What a judge of the finalists must tell apart: the
+    same planner's near-equal candidates on the states it meets, with their simulated outcomes.
+
+    Returns (states, reproduced) as `replay_choices`; the same ValueErrors."""
+    if not hasattr(method, "full_plan") or getattr(method, "config", None) is None or method.config.robust is None:
+        raise ValueError("replay_finalist_trials needs a SuperGrasp planner method with PlannerConfig.robust (its finalists)")
+    replay = LoggedStates(log, objects, method, config)
+    out: list[FinalistTrials] = []
+    for state in replay:
+        if state.target is None or "robust_score" not in state.plan.scores:
+            continue
+        rows = [r for r in _finalists(state) if r["target"] is not None]
+        if len(rows) < 2:
+            continue
+        cfg = replay.config
+        labels, result = trial_lib.run_grasp_with_refinements(
+            state.scene, np.asarray([r["target"] for r in rows]), np.stack([r["pose"] for r in rows]),
+            np.asarray([r["width"] for r in rows]), backend=cfg.backend, config=cfg.trial, nthread=cfg.nthread)
+        out.append(FinalistTrials(
+            state.attempt, int(state.seed), method.planner.stage2_cloud(state.obs.points, state.seed),
+            np.stack([r["pose"] for r in rows]).astype(np.float32), np.asarray([r["width"] for r in rows], np.float32),
+            np.asarray([r["target"] for r in rows], np.int64), tuple(state.scene.assets[r["target"]].name for r in rows),
+            result.outcome.reshape(len(rows), -1).astype(np.int8),
+            np.asarray(labels, bool), np.asarray([r["eval_prob"] for r in rows], np.float32),
+            np.asarray([r["robust_score"] for r in rows], np.float32), np.asarray([r["chosen"] for r in rows], bool)))
+    return out, replay.reproduced
+
+
 def plan_kind(plan, threshold: float) -> str:
     """How a plan's grasp was chosen: "compared" (an evaluated grasp among two or more passing candidates),
     "lone" or "refined" (`sgjax.planner.uncompared`), "none" (no grasp); ", second plan" added when it came
@@ -169,34 +225,46 @@ def replay_alternative(log: dict, objects: Sequence, method, alternative,
     return states, replay.reproduced
 
 
-def replay_logs(folders: Sequence, out, replay: Callable, objects: str | None = None, scenes=None,
-                decode: Callable = lambda d: d) -> Iterator[tuple[str, list, bool]]:
-    """Replay every scene log of `folders` (a run's `logs/supergrasp/<setting>/seed<k>` folders) with
-    `replay(log, objects) -> (states, reproduced)` (states: dataclasses), resumably: each scene's result
-    goes to out/<setting>/<seed folder>/scene_XXX.json (written atomically) and is read back from there
-    on a later run, its states through `decode(dict)`. objects: an object set or mesh folder instead of
-    the log's; scenes: the scene indices to replay (None: all). Yields (name, states, reproduced) per scene."""
+def scene_logs(folders: Sequence, objects: str | None = None, scenes=None) -> Iterator[tuple[Path, Path, dict, Sequence]]:
+    """Every scene log of `folders` (a run's `logs/supergrasp/<setting>/seed<k>` folders), in order:
+    (folder, log path, log, its objects). objects: an object set or mesh folder instead of the log's
+    (resolved once per name); scenes: the scene indices to give (None: all). Raises FileNotFoundError
+    for a folder without scene logs."""
     assets: dict = {}
-    for folder in map(Path, folders):
-        dest_dir = Path(out) / folder.parent.name / folder.name
-        dest_dir.mkdir(parents=True, exist_ok=True)
+    folders = list(map(Path, folders))
+    for folder in folders:
+        if not any(folder.glob("scene_*.json")):
+            raise FileNotFoundError(f"{folder}: no scene_*.json logs (give a run's logs/supergrasp/<setting>/seed<k> folder)")
+    for folder in folders:
         for path in sorted(folder.glob("scene_*.json")):
             log = json.loads(path.read_text())
             if scenes is not None and int(log["scene_index"]) not in scenes:
-                continue
-            dest = dest_dir / path.name
-            if dest.exists():
-                saved = json.loads(dest.read_text())
-                yield f"{folder.name}/{path.name}", [decode(d) for d in saved["states"]], saved["reproduced"]
                 continue
             name = objects or log["object_set"]["name"]
             if name not in assets:
                 setting = declutter.Setting(log["setting"], int(log["n_objects"]), log["object_set"]["name"])
                 assets[name] = resolve_objects(setting, objects)[0]
-            states, reproduced = replay(log, assets[name])
-            atomic_write_text(dest, json.dumps({"scene_index": log["scene_index"], "reproduced": reproduced,
-                                                "states": [dataclasses.asdict(st) for st in states]}))
-            yield f"{folder.name}/{path.name}", states, reproduced
+            yield folder, path, log, assets[name]
+
+
+def replay_logs(folders: Sequence, out, replay: Callable, objects: str | None = None, scenes=None,
+                decode: Callable = lambda d: d) -> Iterator[tuple[str, list, bool]]:
+    """Replay every scene log of `folders` (`scene_logs`) with `replay(log, objects) -> (states,
+    reproduced)` (states: dataclasses), resumably: each scene's result goes to
+    out/<setting>/<seed folder>/scene_XXX.json (written atomically) and is read back from there on a
+    later run, its states through `decode(dict)`. objects, scenes: as `scene_logs`. Yields (name,
+    states, reproduced) per scene."""
+    for folder, path, log, assets in scene_logs(folders, objects, scenes):
+        dest = Path(out) / folder.parent.name / folder.name / path.name
+        if dest.exists():
+            saved = json.loads(dest.read_text())
+            yield f"{folder.name}/{path.name}", [decode(d) for d in saved["states"]], saved["reproduced"]
+            continue
+        states, reproduced = replay(log, assets)
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(dest, json.dumps({"scene_index": log["scene_index"], "reproduced": reproduced,
+                                            "states": [dataclasses.asdict(st) for st in states]}))
+        yield f"{folder.name}/{path.name}", states, reproduced
 
 
 # A rule ranks a state's finalists: finalist -> key, the highest executed (ties: the better evaluated,

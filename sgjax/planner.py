@@ -790,6 +790,14 @@ class Planner:
         n = sum(len(c) for c in candidates)
         return Plan(None, None, None, 0.0, None, None, None, reason, n, timing, list(candidates), scores, None, objects)
 
+    def stage2_cloud(self, scene_points, seed: int = 0) -> np.ndarray:
+        """The Stage-2 scene cloud a plan of `scene_points` [N, 3] with `seed` crops from: its real points
+        [C, 3] float32 in the order the crops read them (C <= scene_cloud.max_points). Stored with a
+        grasp, `sgjax.stage2.crop` of it gives that plan's own crop (training data from plans)."""
+        points, mask = self._scene(_cloud(scene_points, "scene_points"), seed)
+        order = np.asarray(ernet.scene_order(len(points), jax.random.key(seed)))  # as `_stage2_call` shuffles it
+        return np.asarray(points)[order][np.asarray(mask)[order]]
+
     def _scene(self, scene: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
         """The fixed-size Stage-2 scene cloud: points [scene_cloud.max_points, 3] float32 and mask."""
         points, mask, _ = self.config.scene_cloud.make(scene, None, seed)

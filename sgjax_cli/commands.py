@@ -302,6 +302,48 @@ def _cmd_label(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_label_finalists(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from eval.benchmark import scene_indices
+    from eval.counterfactual import replay_finalist_trials, scene_logs
+    from eval.methods import make_method
+    from train.finalists import sidecar_path, write_finalist_shard
+    from train.label import LabelConfig
+
+    held_out = LabelConfig().held_out_objects
+    totals = {"scenes": 0, "states": 0, "finalists": 0, "succeed": 0, "stopped": 0}
+    try:
+        scenes = set(scene_indices(args.scenes)) if args.scenes else None
+        method = make_method("supergrasp", model=args.model)
+        out = Path(args.out)
+        for folder, path, log, objects in scene_logs(args.logs, args.objects, scenes):
+            out.mkdir(parents=True, exist_ok=True)
+            shard = out / f"{log['setting']}-{folder.name}-{path.stem}.npz"
+            if Path(sidecar_path(shard)).exists():
+                continue  # done by an earlier run
+            states, reproduced = replay_finalist_trials(log, objects, method)
+            write_finalist_shard(shard, states, int(log["scene_seed"]), int(log["scene_index"]), held_out)
+            m = sum(len(s.pose) for s in states)
+            ok = sum(int(s.label[:, 0].sum()) for s in states)
+            totals["scenes"] += 1
+            totals["states"] += len(states)
+            totals["finalists"] += m
+            totals["succeed"] += ok
+            totals["stopped"] += not reproduced
+            if not args.quiet:
+                print(f"{folder.name}/{path.name}: {len(states)} states, {m} finalists, {ok} succeed"
+                      + ("" if reproduced else " (stopped: the plan differs from the log)"), flush=True)
+    except (ValueError, FileNotFoundError) as exc:
+        return _fail(str(exc))
+    except KeyboardInterrupt:
+        print(f"\ninterrupted: rerun the same command to continue; finished scenes in {args.out} are kept", file=sys.stderr)
+        return 130
+    print(f"label-finalists {args.out}: {totals['scenes']} scene(s) replayed now ({totals['stopped']} stopped early), "
+          f"{totals['states']} states, {totals['finalists']} finalists, {totals['succeed']} succeed")
+    return 0
+
+
 def _cmd_build_db(args: argparse.Namespace) -> int:
     from sgjax.stage1.database import (
         DBConfig,
@@ -691,6 +733,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--threads", type=int, default=0, help="simulation threads (default: all cores; with --ray: per worker, default 1)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_label)
+    p = sub.add_parser(
+        "label-finalists",
+        help="label the planner's finalists on replayed benchmark states, for training a judge (resumable)",
+    )
+    p.add_argument("logs", nargs="+", metavar="LOG_DIR",
+                   help="SuperGrasp benchmark log folders (OUT/logs/supergrasp/<setting>/seed<k>) made by this planner")
+    p.add_argument("--out", required=True, help="directory of label shards (one per scene, source 'finalist')")
+    p.add_argument("--objects", metavar="DIR", help="a folder of meshes (or an object set name) instead of the logs'")
+    p.add_argument("--scenes", help="scene indices, e.g. 0-9 (default: every log)")
+    p.add_argument("--model", metavar="RUN_DIR", help="the E-RNet run the logs were made with (default: the shipped one)")
+    p.add_argument("--quiet", action="store_true", help="no line per scene")
+    p.set_defaults(func=_cmd_label_finalists)
     p = sub.add_parser(
         "declutter",
         help="decluttering benchmark in simulation (paper Table I): GSR, TSR, GA over N scenes; resumable",

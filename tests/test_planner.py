@@ -175,6 +175,30 @@ def test_plan_scores_every_object_in_one_call(planner, scene, first_plan):
     assert record["n_scored"] == n_scored and record["kind"] == plan.kind
 
 
+def test_stage2_cloud_reproduces_the_plans_scores(planner, scene, first_plan):
+    """`Planner.stage2_cloud`: stored with a grasp, the plan's Stage-2 cloud gives that plan's own crop, so
+    the network scores it as the plan did (what training data taken from plans needs)."""
+    from sgjax.stage2.crops import crop_regions, crop_swept_regions
+
+    plan = first_plan
+    cloud = planner.stage2_cloud(scene[0], seed=0)
+    assert cloud.dtype == np.float32 and cloud.shape[1] == 3 and 0 < len(cloud) <= planner.config.scene_cloud.max_points
+    assert np.array_equal(cloud, planner.stage2_cloud(scene[0], seed=0))
+    assert not np.array_equal(cloud, planner.stage2_cloud(scene[0], seed=1))  # the plan's seed shuffles it
+    rows = np.flatnonzero(plan.scores["valid"])[:16]
+    poses = np.stack([plan.candidates[int(plan.scores["object"][r])].poses[int(plan.scores["object_candidate"][r])] for r in rows])
+    widths = np.array([plan.candidates[int(plan.scores["object"][r])].widths[int(plan.scores["object_candidate"][r])] for r in rows])
+    crop = crop_swept_regions if getattr(planner.model.config, "crop", "enlarged") == "swept" else crop_regions
+    region = crop(jnp.asarray(cloud), jnp.asarray(poses, jnp.float32), jnp.asarray(widths, jnp.float32), spec=planner.config.spec,
+                  n_points=2048)
+    scores = ernet.score_regions(planner.graphdef, planner.state, region.points, region.mask, jnp.asarray(widths, jnp.float32),
+                                 spec=planner.config.spec)
+    np.testing.assert_allclose(np.asarray(scores.eval_prob), plan.scores["eval_prob"][rows], atol=1e-5)
+    other = crop(jnp.asarray(planner.stage2_cloud(scene[0], seed=1)), jnp.asarray(poses, jnp.float32),
+                 jnp.asarray(widths, jnp.float32), spec=planner.config.spec, n_points=2048)
+    assert not np.array_equal(np.asarray(other.points), np.asarray(region.points))
+
+
 def test_more_candidates_than_stage2_takes_keeps_each_objects_best():
     obj, row = planner_mod.stage2_subset([5, 1, 3], 6)  # round-robin in match order
     assert list(zip(obj.tolist(), row.tolist())) == [(0, 0), (0, 1), (0, 2), (1, 0), (2, 0), (2, 1)]

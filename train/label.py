@@ -108,6 +108,9 @@ class LabelConfig:
         per_source = tuple((str(name), int(count)) for name, count in self.per_source)
         for name, count in per_source:
             sources.source_index(name)  # raises naming the known sources
+            if name == "finalist":
+                raise ValueError("LabelConfig.per_source: finalist grasps come from replayed benchmark scenes "
+                                 "(sgjax label-finalists), not from sgjax label")
             if count < 0:
                 raise ValueError(f"LabelConfig.per_source: {name} must have >= 0 grasps, got {count}")
         if len({name for name, _ in per_source}) != len(per_source) or not any(c for _, c in per_source):

@@ -16,6 +16,9 @@ records its source (`SOURCES`, stored as its index):
                 extra matches are kept (the rest is the stage1 source). A single view often labels a flat
                 object's axes so that the database's matching shape ranks low; these are the candidates
                 that reach it (issue "Stage 2, part 2").
+  finalist      the planner's own finalists (its robust choice's best-evaluated candidates) on the states
+                of replayed benchmark scenes, each executed with its refinements (`train.finalists`,
+                `sgjax label-finalists`); not drawn by `sgjax label`.
   perturbed     grasps of the sources above moved by 0.5-2 cm and turned by 5-20 deg about the centre
                 of the closing region: near misses and hard negatives.
 
@@ -34,7 +37,7 @@ from sgjax.samplers import gpd as gpd_sampler
 from sgjax.stage1.pipeline import Stage1Config
 
 # Appended only: a stored code is an index into this tuple, so older label directories stay readable.
-SOURCES = ("stage1", "stage1_paper", "gpd", "perturbed", "stage1_relabel")
+SOURCES = ("stage1", "stage1_paper", "gpd", "perturbed", "stage1_relabel", "finalist")
 
 
 def source_index(name: str) -> int:

@@ -517,6 +517,12 @@ class SceneCandidates:
     ok: jax.Array
 
 
+def scene_order(n: int, key: jax.Array | None) -> jax.Array:
+    """The order [n] in which scoring reads a scene of n points: shuffled with `key` (None: a fixed key),
+    so that each crop, the first region points in this order, is a uniform sample of its region."""
+    return jax.random.permutation(jax.random.key(0) if key is None else key, n)
+
+
 def scene_candidates(scene, poses, widths, scene_mask, spec: GripperSpec, key: jax.Array | None) -> SceneCandidates:
     """Check and prepare one scene [N, 3] and M candidates for cropping (shared by every scorer).
 
@@ -530,8 +536,7 @@ def scene_candidates(scene, poses, widths, scene_mask, spec: GripperSpec, key: j
     poses, widths = check_candidates(poses, widths)
     if scene_mask is not None and jnp.shape(scene_mask) != scene.shape[:1]:
         raise ValueError(f"scene_mask must have shape {scene.shape[:1]}, got {jnp.shape(scene_mask)}")
-    key = jax.random.key(0) if key is None else key
-    order = jax.random.permutation(key, scene.shape[0])
+    order = scene_order(scene.shape[0], key)
     scene_mask = None if scene_mask is None else jnp.asarray(scene_mask)[order]
     ok = jnp.all(jnp.isfinite(poses), axis=(-2, -1)) & jnp.isfinite(widths) & gripper.width_in_range(widths, spec)
     safe_poses = jnp.where(ok[:, None, None], poses, jnp.eye(4))
