@@ -9,6 +9,9 @@ one batched trial. That answers, on identical states and without the noise of di
 (a) how often some finalist would have succeeded (what a better choice could reach), and (b) how another
 rule over the finalists' scores would have done (`rule_successes`). The episode goes on as logged.
 
+The same walk gives a judge of the finalists its training data (`replay_finalist_trials`: every
+finalist executed with its refinements, and the state's Stage-2 cloud; `sgjax label-finalists`).
+
 The same walk over the logged states (`LoggedStates`) measures a change of the planner itself
 (`replay_alternative`): another planner plans every state too, and its grasp, where it differs, is
 executed from that state.
@@ -117,9 +120,10 @@ class FinalistTrials:
     """A state's finalists executed with their refinements, as training data for a judge: the attempt
     index, the plan's seed, the Stage-2 cloud the plan cropped from (cloud [C, 3] float32,
     `Planner.stage2_cloud`), and per simulated finalist (M of them): pose [M, 4, 4] (as executed), width
-    [M], target [M] (the object lifted) and target_name [M] (its name), outcome [M, 1 + K] (`envs.trial.Outcome` codes: the grasp, then
-    its K refinements, `envs.trial.run_grasp_with_refinements`), label [M, 1 + K] (success), eval_prob,
-    robust_score [M] (the planner's scores) and chosen [M] (the logged grasp)."""
+    [M], target [M] (the object lifted) and target_name [M] (its name), outcome [M, 1 + K]
+    (`envs.trial.Outcome` codes: the grasp, then its K refinements, `envs.trial.run_grasp_with_refinements`),
+    label [M, 1 + K] (success), eval_prob, robust_score [M] (the planner's scores) and chosen [M] (the
+    logged grasp)."""
 
     attempt: int
     seed: int

@@ -39,13 +39,16 @@ def state_seed(scene_seed: int, attempt: int) -> int:
     return int(scene_seed) * 1000 + int(attempt)
 
 
-def finalist_samples(states: Sequence, scene_seed: int, scene_index: int, held_out: Sequence[str] = ()) -> tuple[dict[str, np.ndarray], list[np.ndarray]]:
+def finalist_samples(states: Sequence, scene_seed: int, scene_index: int,
+                     held_out: Sequence[str] = ()) -> tuple[dict[str, np.ndarray], list[np.ndarray]]:
     """One replayed scene's finalist trials -> (LABEL_FIELDS columns, the states' clouds).
 
     states: `eval.counterfactual.FinalistTrials` (attempt, cloud [C, 3], pose [M, 4, 4], width [M],
-    target_name [M], outcome and label [M, 1 + K], ...); held_out: names of objects no run trains on (`train.label.LabelConfig.held_out_objects`). Every
-    state's samples point at its own cloud (`cloud_row`); all carry the scene's seed (the train /
-    held-out split is per scene) and index."""
+    target_name [M], outcome and label [M, 1 + K], ...); held_out: names of objects no run trains on
+    (`train.label.LabelConfig.held_out_objects`). Every state is a scene of its own: its samples point at
+    its own cloud (`cloud_row`) and carry its own seed (`state_seed`), so that a within-scene ranking
+    loss (`sgjax train --rank-weight`) ranks one state's finalists against each other (the train /
+    held-out split of `sgjax train` is then per state); scene_index is the benchmark scene's."""
     parts = []
     for row, state in enumerate(states):
         m = len(state.pose)
@@ -56,7 +59,8 @@ def finalist_samples(states: Sequence, scene_seed: int, scene_index: int, held_o
             "pose": np.asarray(state.pose, np.float32), "width": np.asarray(state.width, np.float32),
             "label": label[:, 0], "refine_labels": label[:, 1:], "outcome": outcome[:, 0],
             "refine_outcomes": outcome[:, 1:], "source": np.full(m, source_index("finalist"), np.int8),
-            "scene_seed": np.full(m, state_seed(scene_seed, state.attempt), np.int64), "scene_index": np.full(m, scene_index, np.int32),
+            "scene_seed": np.full(m, state_seed(scene_seed, state.attempt), np.int64),
+            "scene_index": np.full(m, scene_index, np.int32),
             "cloud_row": np.full(m, row, np.int32), "object_name": names,
             "held_out_object": np.isin(names, list(held_out)),
             # An invalid trial (the simulation refused the grasp) says nothing about it.
@@ -64,7 +68,8 @@ def finalist_samples(states: Sequence, scene_seed: int, scene_index: int, held_o
         })
     if not parts:
         return {k: np.zeros((0, *f.shape), f.dtype) for k, f in LABEL_FIELDS.items()}, []
-    return {k: np.concatenate([p[k] for p in parts]) for k in LABEL_FIELDS}, [np.asarray(s.cloud, np.float32) for s in states]
+    clouds = [np.asarray(s.cloud, np.float32) for s in states]
+    return {k: np.concatenate([p[k] for p in parts]) for k in LABEL_FIELDS}, clouds
 
 
 def write_finalist_shard(path: str | os.PathLike, states: Sequence, scene_seed: int, scene_index: int,
