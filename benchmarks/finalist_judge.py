@@ -1,14 +1,17 @@
 """Judges of the planner's finalists, compared offline on finalist shards (`sgjax label-finalists`).
 
     python benchmarks/finalist_judge.py SHARD_DIR [SHARD_DIR ...] [--judge RUN_DIR|paper|default ...]
+                                        [--perturb SHIFT:DEG[,SHIFT:DEG ...]]
 
 Every finalist of every state is scored by each judge at its own pose and at the robust choice's five
 perturbed poses (`sgjax.planner.RobustChoice`: the same shift and angle), from the state's stored Stage-2
 cloud, as the planner's judge would score them. Per judge the table gives how often its pick among a
-state's finalists succeeds: by its own-pose score, and by its mean over the six poses (the planner's rule);
-beside them the executed grasp (the logged choice) and the oracle (any finalist). Only states where some
-finalists succeed and some fail ("mixed") can move the numbers; their count is printed. Ties go to the better robust score of the
-logged plan, then the earlier finalist (`train.finalists.finalist_choices`).
+state's finalists succeeds: by its own-pose score, and by its mean over the six poses (the planner's
+rule); beside them the executed grasp (the logged choice) and the oracle (any finalist). Only states
+where some finalists succeed and some fail ("mixed") can move the numbers; their count is printed. Ties
+go to the better robust score of the logged plan, then the earlier finalist
+(`train.finalists.finalist_choices`). --perturb: other perturbation sets than the robust choice's
+(metres and degrees of `gripper.perturbed_poses`, five poses each; several sets pool their poses).
 """
 
 from __future__ import annotations
@@ -28,13 +31,18 @@ from train.dataset import DEFAULT_SPEC, crop_samples, read_label_shard
 from train.finalists import finalist_choices
 
 
-def judge_scores(model, samples: dict, clouds: list, batch: int = 64) -> tuple[np.ndarray, np.ndarray]:
-    """-> (own-pose eval_prob [S], mean over own + the five perturbed poses [S]) of one shard's samples."""
-    robust = RobustChoice()
+def judge_scores(model, samples: dict, clouds: list, perturb: tuple[tuple[float, float], ...] | None = None,
+                 batch: int = 64) -> tuple[np.ndarray, np.ndarray]:
+    """-> (own-pose eval_prob [S], mean over the own and the perturbed poses [S]) of one shard's samples;
+    perturb: (shift m, angle deg) sets of `gripper.perturbed_poses` (None: the robust choice's)."""
+    if perturb is None:
+        robust = RobustChoice()
+        perturb = ((robust.shift, robust.angle_deg),)
     crop = getattr(model.config, "crop", "enlarged")
-    poses = np.asarray(gripper.perturbed_poses(jnp.asarray(samples["pose"]), robust.shift, robust.angle_deg))  # [S, 5, 4, 4]
-    every = np.concatenate([samples["pose"][:, None], poses], axis=1).reshape(-1, 4, 4).astype(np.float32)
-    expanded = {k: np.repeat(v, 6, axis=0) for k, v in samples.items()}
+    poses = [np.asarray(gripper.perturbed_poses(jnp.asarray(samples["pose"]), shift, angle)) for shift, angle in perturb]
+    k = 1 + 5 * len(perturb)
+    every = np.concatenate([samples["pose"][:, None], *poses], axis=1).reshape(-1, 4, 4).astype(np.float32)
+    expanded = {name: np.repeat(v, k, axis=0) for name, v in samples.items()}
     expanded["pose"] = every
     cropped = crop_samples(expanded, clouds, DEFAULT_SPEC, crop)
     graphdef, state = nnx.split(model)
@@ -49,7 +57,7 @@ def judge_scores(model, samples: dict, clouds: list, batch: int = 64) -> tuple[n
             width = np.concatenate([width, np.zeros(pad, width.dtype)])
         scores = ernet.score_regions(graphdef, state, region, mask, width, spec=DEFAULT_SPEC)
         out.append(np.asarray(scores.eval_prob)[: batch - pad])
-    probs = np.concatenate(out).reshape(-1, 6)
+    probs = np.concatenate(out).reshape(-1, k)
     return probs[:, 0], probs.mean(axis=1)
 
 
@@ -58,18 +66,25 @@ def main() -> None:
     parser.add_argument("shards", nargs="+", help="directories of finalist shards")
     parser.add_argument("--judge", nargs="+", default=["default"],
                         help="judges: 'default' (the shipped E-RNet), 'paper' (the shipped paper-size one) or run directories")
+    parser.add_argument("--perturb", help="perturbation sets SHIFT:DEG[,SHIFT:DEG ...] (default: the robust choice's 0.005:10)")
     args = parser.parse_args()
+    perturb = None
+    if args.perturb:
+        try:
+            perturb = tuple((float(a), float(b)) for a, b in (item.split(":") for item in args.perturb.split(",")))
+        except ValueError:
+            raise SystemExit(f"--perturb {args.perturb!r}: give SHIFT:DEG pairs separated by commas, e.g. 0.005:10,0.01:20")
     paths = sorted(p for d in args.shards for p in glob.glob(os.path.join(d, "*.npz")))
     if not paths:
         raise SystemExit(f"no finalist shards in {args.shards}")
     print(f"{len(paths)} scene shard(s)")
-    print("| judge | states | mixed | executed | own pose | mean of six poses | oracle |\n|---|---:|---:|---:|---:|---:|---:|")
+    print("| judge | states | mixed | executed | own pose | mean of own + perturbed poses | oracle |\n|---|---:|---:|---:|---:|---:|---:|")
     for name in args.judge:
         model = ernet.as_judge(None if name == "default" else name) or ernet.as_model(None)
         rows_own, rows_mean = [], []
         for path in paths:
             samples, clouds = read_label_shard(path)
-            own, mean = judge_scores(model, samples, clouds)
+            own, mean = judge_scores(model, samples, clouds, perturb)
             rows_own += finalist_choices(path, own)
             rows_mean += finalist_choices(path, mean)
         states = len(rows_own)
