@@ -793,7 +793,7 @@ class Planner:
     def stage2_cloud(self, scene_points, seed: int = 0) -> np.ndarray:
         """The Stage-2 scene cloud a plan of `scene_points` [N, 3] with `seed` crops from: its real points
         [C, 3] float32 in the order the crops read them (C <= scene_cloud.max_points). Stored with a
-        grasp, `sgjax.stage2.crop` of it gives that plan's own crop (training data from plans)."""
+        grasp, a crop of it (`sgjax.stage2.crops`) is that plan's own crop (training data from plans)."""
         points, mask = self._scene(_cloud(scene_points, "scene_points"), seed)
         order = np.asarray(ernet.scene_order(len(points), jax.random.key(seed)))  # as `_stage2_call` shuffles it
         return np.asarray(points)[order][np.asarray(mask)[order]]
