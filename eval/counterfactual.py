@@ -158,14 +158,14 @@ def replay_finalist_trials(log: dict, objects: Sequence, method,
         if len(rows) < 2:
             continue
         cfg = replay.config
-        labels, result = trial_lib.run_grasp_with_refinements(
-            state.scene, np.asarray([r["target"] for r in rows]), np.stack([r["pose"] for r in rows]),
-            np.asarray([r["width"] for r in rows]), backend=cfg.backend, config=cfg.trial, nthread=cfg.nthread)
+        poses, widths = np.stack([r["pose"] for r in rows]), np.asarray([r["width"] for r in rows])
+        targets = np.asarray([r["target"] for r in rows], np.int64)
+        labels, result = trial_lib.run_grasp_with_refinements(state.scene, targets, poses, widths, backend=cfg.backend,
+                                                              config=cfg.trial, nthread=cfg.nthread)
         out.append(FinalistTrials(
             state.attempt, int(state.seed), method.planner.stage2_cloud(state.obs.points, state.seed),
-            np.stack([r["pose"] for r in rows]).astype(np.float32), np.asarray([r["width"] for r in rows], np.float32),
-            np.asarray([r["target"] for r in rows], np.int64), tuple(state.scene.assets[r["target"]].name for r in rows),
-            result.outcome.reshape(len(rows), -1).astype(np.int8),
+            poses.astype(np.float32), widths.astype(np.float32), targets,
+            tuple(state.scene.assets[int(t)].name for t in targets), result.outcome.reshape(len(rows), -1).astype(np.int8),
             np.asarray(labels, bool), np.asarray([r["eval_prob"] for r in rows], np.float32),
             np.asarray([r["robust_score"] for r in rows], np.float32), np.asarray([r["chosen"] for r in rows], bool)))
     return out, replay.reproduced
