@@ -85,8 +85,8 @@ def main() -> None:
         for path in paths:
             samples, clouds = read_label_shard(path)
             own, mean = judge_scores(model, samples, clouds, perturb)
-            rows_own += finalist_choices(path, own)
-            rows_mean += finalist_choices(path, mean)
+            rows_own += finalist_choices(path, own, samples)
+            rows_mean += finalist_choices(path, mean, samples)
         states = len(rows_own)
         mixed = sum(c.any and not c.all for c in rows_own)
         pct = lambda k: f"{k} ({100 * k / states:.1f} %)"

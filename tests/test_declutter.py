@@ -584,6 +584,7 @@ def test_finalists_with_their_refinements_become_a_label_shard(objects, small_db
     assert [(c.any, c.all) for c in picks] == [(s.label[:, 0].any(), s.label[:, 0].all()) for s in states]
     worst = finalist_choices(shard, -np.concatenate([s.label[:, 0] for s in states]).astype(float))
     assert [c.picked for c in worst] == [c.all for c in picks]
+    assert finalist_choices(shard, -samples["label"].astype(float), dataset.read_label_shard(shard)[0]) == worst
     with pytest.raises(ValueError, match="scores"):
         finalist_choices(shard, np.zeros(n + 1))
     # no state: only the sidecar, so a resumed run knows the scene is done

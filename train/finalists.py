@@ -106,11 +106,13 @@ class Choice(NamedTuple):
     all: bool
 
 
-def finalist_choices(shard: str | os.PathLike, scores: np.ndarray) -> list[Choice]:
+def finalist_choices(shard: str | os.PathLike, scores: np.ndarray, samples: dict | None = None) -> list[Choice]:
     """Offline: per state of a finalist shard, a `Choice` for the finalist with the highest `scores` (one
     per sample of the shard, e.g. a new judge's). Ties go to the better robust score of the logged plan,
-    then the earlier finalist. Raises ValueError when scores do not match the shard's samples."""
-    samples, _ = read_label_shard(shard)
+    then the earlier finalist. samples: the shard's columns when the caller has read them already
+    (`read_label_shard`; None: read here). Raises ValueError when scores do not match the shard's samples."""
+    if samples is None:
+        samples, _ = read_label_shard(shard)
     with open(sidecar_path(shard)) as fh:
         states = json.load(fh)["states"]
     scores = np.asarray(scores, np.float64)
