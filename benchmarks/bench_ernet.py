@@ -109,7 +109,7 @@ def best_of(fn, repeats: int) -> tuple[float, float]:
 
 def stage_breakdown(model: ERNet, scene, poses, widths, repeats: int) -> dict[str, float]:
     config = model.config
-    crop_fn = crops.crop_swept_regions if config.hand_points else crops.crop_regions
+    crop_fn = crops.crop_function(config.crop)
     crop = jax.jit(lambda s, p, w: crop_fn(s, p, w, SPEC, config.crop_points))
     prepare = jax.jit(lambda r, w: ernet.prepare_inputs(r.points, r.mask, w, SPEC, config))
     graphdef, state = nnx.split(model)

@@ -33,7 +33,6 @@ from envs import camera as camera_lib  # noqa: E402
 from envs import scene as scene_lib  # noqa: E402
 from envs import trial as trial_lib  # noqa: E402
 from eval import declutter  # noqa: E402
-from eval.benchmark import resolve_objects  # noqa: E402
 from sgjax.geometry import pointcloud  # noqa: E402
 from sgjax.geometry.superquadric import Superquadric  # noqa: E402
 from sgjax.stage1.ems import EMSConfig, fit_superquadrics  # noqa: E402
@@ -111,12 +110,9 @@ def main() -> None:
     args = parser.parse_args()
     tests = variants(args.margins, args.closing)
     logs = read_logs(args)
-    config, objects, rows = declutter.DeclutterConfig(), {}, []
-    for log in logs:
-        name = log["object_set"]["name"]
-        if name not in objects:
-            objects[name] = resolve_objects(declutter.Setting(log["setting"], int(log["n_objects"]), name))[0]
-        rows += analyse(log, objects[name], tests, args.every, config)
+    config, rows = declutter.DeclutterConfig(), []
+    for log, objects in logs:
+        rows += analyse(log, objects, tests, args.every, config)
         print(f"scene {log['scene_index']}: {len(rows)} attempts tested so far", flush=True)
     print(f"\n{args.method} {args.setting} seed {args.seed}: attempts whose logged hand meets another object's "
           f"fit (every collision, every {args.every}th other attempt)\n")

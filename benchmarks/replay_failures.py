@@ -24,7 +24,8 @@ from pathlib import Path
 import numpy as np
 
 from eval import declutter
-from eval.benchmark import resolve_objects, scene_indices
+from eval.benchmark import scene_indices
+from eval.counterfactual import scene_logs
 from eval.replay import ReplayedAttempt, collision_cause, replay_scene
 from sgjax.geometry.gripper import PANDA_HAND
 from sgjax.utils.files import atomic_write_text
@@ -32,21 +33,16 @@ from sgjax.utils.files import atomic_write_text
 OTHERS = {"panda": PANDA_HAND, "none": None}
 
 
-def replay_logs(logs: list[dict], other_name: str, out: Path) -> list[ReplayedAttempt]:
-    """Replay each log (or read its replay back from `out`); all attempts, scene after scene."""
-    objects = {}
+def replay_logs(logs: list[tuple[dict, list]], other_name: str, out: Path) -> list[ReplayedAttempt]:
+    """Replay each (log, its objects) (or read its replay back from `out`); all attempts, scene after scene."""
     attempts = []
-    for log in logs:
+    for log, objects in logs:
         path = out / f"scene_{int(log['scene_index']):03d}.json"
         if path.exists():
             saved = json.loads(path.read_text())
             attempts += [ReplayedAttempt(**a) for a in saved["attempts"]]
             continue
-        name = log["object_set"]["name"]
-        if name not in objects:
-            setting = declutter.Setting(log["setting"], int(log["n_objects"]), name)
-            objects[name] = resolve_objects(setting)[0]
-        replayed = replay_scene(log, objects[name], other=OTHERS[other_name])
+        replayed = replay_scene(log, objects, other=OTHERS[other_name])
         text = json.dumps({"scene_index": log["scene_index"], "other": other_name,
                            "attempts": [dataclasses.asdict(a) for a in replayed]})
         atomic_write_text(path, text)
@@ -111,11 +107,14 @@ def log_arguments(description: str) -> argparse.ArgumentParser:
     return parser
 
 
-def read_logs(args: argparse.Namespace) -> list[dict]:
-    """The scene logs `log_arguments` names (those that exist); SystemExit when there are none."""
+def read_logs(args: argparse.Namespace) -> list[tuple[dict, list]]:
+    """The scene logs `log_arguments` names (those that exist), each with the objects its run used
+    (`eval.counterfactual.scene_logs`); SystemExit when there are none."""
     folder = args.results / "logs" / args.method / args.setting / f"seed{args.seed}"
-    paths = [folder / f"scene_{i:03d}.json" for i in scene_indices(args.scenes)]
-    logs = [json.loads(p.read_text()) for p in paths if p.exists()]
+    try:
+        logs = [(log, objects) for _, _, log, objects in scene_logs([folder], scenes=set(scene_indices(args.scenes)))]
+    except FileNotFoundError:
+        logs = []
     if not logs:
         raise SystemExit(f"no scene logs under {folder} for scenes {args.scenes}")
     return logs

@@ -357,10 +357,10 @@ def test_swept_input_sees_what_the_fingers_would_hit():
     swept = crops.crop_swept_regions(blocked, poses, widths, spec, 4096)
     assert int(swept.count[0]) == int(crops.crop_regions(blocked, poses, widths, spec, 4096).count[0]) + len(wall)
 
-    for config, crop, changes in (
-        (TINY, crops.crop_regions, False),
-        (ERNetConfig.tiny(hand_points=32), crops.crop_swept_regions, True),
-    ):
+    with pytest.raises(ValueError, match="unknown crop 'hand'"):
+        crops.crop_function("hand")
+    for config, changes in ((TINY, False), (ERNetConfig.tiny(hand_points=32), True)):
+        crop = crops.crop_function(config.crop)  # the network's own input, as Stage 2 and training crop it
         graphdef, state = nnx.split(ERNet(config, rngs=nnx.Rngs(0)))
         a, b = (crop(scene, poses, widths, spec, 4096) for scene in (clear, blocked))
         sa = ernet.score_regions(graphdef, state, a.points, a.mask, widths, spec=spec)

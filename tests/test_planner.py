@@ -178,7 +178,7 @@ def test_plan_scores_every_object_in_one_call(planner, scene, first_plan):
 def test_stage2_cloud_reproduces_the_plans_scores(planner, scene, first_plan):
     """`Planner.stage2_cloud`: stored with a grasp, the plan's Stage-2 cloud gives that plan's own crop, so
     the network scores it as the plan did (what training data taken from plans needs)."""
-    from sgjax.stage2.crops import crop_regions, crop_swept_regions
+    from sgjax.stage2.crops import crop_function
 
     plan = first_plan
     cloud = planner.stage2_cloud(scene[0], seed=0)
@@ -188,7 +188,7 @@ def test_stage2_cloud_reproduces_the_plans_scores(planner, scene, first_plan):
     rows = np.flatnonzero(plan.scores["valid"])[:16]
     poses = np.stack([plan.candidates[int(plan.scores["object"][r])].poses[int(plan.scores["object_candidate"][r])] for r in rows])
     widths = np.array([plan.candidates[int(plan.scores["object"][r])].widths[int(plan.scores["object_candidate"][r])] for r in rows])
-    crop = crop_swept_regions if getattr(planner.model.config, "crop", "enlarged") == "swept" else crop_regions
+    crop = crop_function(planner.model.config.crop)
     region = crop(jnp.asarray(cloud), jnp.asarray(poses, jnp.float32), jnp.asarray(widths, jnp.float32), spec=planner.config.spec,
                   n_points=2048)
     scores = ernet.score_regions(planner.graphdef, planner.state, region.points, region.mask, jnp.asarray(widths, jnp.float32),

@@ -41,6 +41,7 @@ from collections.abc import Iterator, Mapping, Sequence
 import jax
 import numpy as np
 
+from sgjax.stage2.crops import CROPS, HAND_MARGIN, HAND_SWEEP, crop_function, in_enlarged_region_local
 from sgjax.stage2.ernet import DEFAULT_SPEC
 from sgjax.utils.configs import from_dict
 from sgjax.utils.files import atomic_write
@@ -268,9 +269,9 @@ def directory_spec(directory: str | os.PathLike) -> GripperSpec:
         raise DatasetError(f"{path}: no readable stage1.spec ({exc})") from None
 
 
-# The Stage-2 inputs a label shard can be cropped to: the paper's enlarged region, or that region
-# together with the hand's swept volume (`sgjax.stage2.crops.crop_swept_regions`; E-RNet's hand input).
-CROPS = ("enlarged", "swept")
+# A label shard is cropped to one of the Stage-2 inputs (`sgjax.stage2.crops.CROPS`): the paper's enlarged
+# region, or that region together with the hand's swept volume (E-RNet's hand input). The version names
+# the cached crops' layout.
 CROP_VERSION = 1
 
 
@@ -285,12 +286,10 @@ def crop_samples(samples: Mapping[str, np.ndarray], clouds: Sequence[np.ndarray]
     or "swept", that region and the hand's swept volume (`crop_swept_regions`)."""
     if crop not in CROPS:
         raise DatasetError(f"unknown crop {crop!r}; known: {', '.join(CROPS)}")
-    from sgjax.stage2.crops import crop_regions, crop_swept_regions
-
     n = len(samples["label"])
     region = np.zeros((n, REGION_POINTS, 3), np.float32)
     region_mask = np.zeros((n, REGION_POINTS), bool)
-    fn = _jitted_crop(crop_swept_regions if crop == "swept" else crop_regions)
+    fn = _jitted_crop(crop_function(crop))
     for row, cloud in enumerate(clouds):
         index = np.flatnonzero(samples["cloud_row"] == row)
         if not len(index):
@@ -317,8 +316,6 @@ def crop_label_shard(path: str | os.PathLike, spec: GripperSpec = DEFAULT_SPEC, 
     """A label shard cropped to `crop` (`crop_samples`), cached beside it in crops/<crop>-v<N>-<spec
     hash>/ (shards never change once written, so a cached crop stays valid)."""
     path = os.fspath(path)
-    from sgjax.stage2.crops import HAND_MARGIN, HAND_SWEEP
-
     described = repr(spec) + (f" sweep {HAND_SWEEP} margin {HAND_MARGIN}" if crop == "swept" else "")
     key = hashlib.sha256(described.encode()).hexdigest()[:10]
     cached = os.path.join(os.path.dirname(path), "crops", f"{crop}-v{CROP_VERSION}-{key}", os.path.basename(path))
@@ -513,6 +510,4 @@ def synthetic_samples(
 
 def _enlarged_mask(points: np.ndarray, width: np.ndarray, spec: GripperSpec) -> np.ndarray:
     """Grasp-frame points[n, N, 3] in the enlarged region of widths[n] (sgjax.geometry.gripper geometry)."""
-    from sgjax.stage2.crops import in_enlarged_region_local
-
     return np.asarray(in_enlarged_region_local(points, width.astype(np.float32), spec))

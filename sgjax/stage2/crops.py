@@ -315,3 +315,16 @@ def crop_closing_regions(
     """
     return _crop(scene, poses, widths, n_points, scene_mask, lambda local, w: _in_closing_planes(*local, w, spec),
                  lambda w: _local_bounds(spec, w, "closing"))
+
+
+CROPS = ("enlarged", "swept")  # the stored Stage-2 inputs, by name (`ERNetConfig.crop`, train.dataset)
+
+
+def crop_function(crop: str) -> Callable[..., Region]:
+    """The cropper of the Stage-2 input named `crop` ("enlarged": `crop_regions`, the paper's; "swept":
+    `crop_swept_regions`), one choice for scoring, labelled data and checks alike; ValueError names an
+    unknown one."""
+    if crop not in CROPS:
+        raise ValueError(f"unknown crop {crop!r}; known: {', '.join(CROPS)}")
+    return crop_swept_regions if crop == "swept" else crop_regions
+

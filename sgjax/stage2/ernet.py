@@ -46,8 +46,7 @@ from sgjax.stage2.crops import (
     HAND_MARGIN,
     HAND_SWEEP,
     check_candidates,
-    crop_regions,
-    crop_swept_regions,
+    crop_function,
     in_closing_region_local,
     in_enlarged_region_local,
     in_swept_hand_local,
@@ -190,7 +189,7 @@ class ERNetConfig:
 
     @property
     def crop(self) -> str:
-        """The stored crop this network trains on (`train.dataset.CROPS`): "swept" or "enlarged"."""
+        """The crop this network takes (`sgjax.stage2.crops.CROPS`, `crop_function`): "swept" or "enlarged"."""
         return "swept" if self.hand_points else "enlarged"
 
     @property
@@ -568,8 +567,7 @@ def score(
     config: ERNetConfig = model.config
     _check_config(config, spec)
     c = scene_candidates(scene, poses, widths, scene_mask, spec, key)
-    crop = crop_swept_regions if config.hand_points else crop_regions
-    region = crop(c.scene, c.poses, c.widths, spec, config.crop_points, c.scene_mask)
+    region = crop_function(config.crop)(c.scene, c.poses, c.widths, spec, config.crop_points, c.scene_mask)
     inputs = prepare_inputs(region.points, region.mask, c.widths, spec, config)
     return _scores(model, inputs, c.ok, region.count)
 
