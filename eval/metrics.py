@@ -17,7 +17,7 @@ from __future__ import annotations
 import collections
 import dataclasses
 import re
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Hashable, Iterable, Mapping
 
 import numpy as np
 
@@ -215,3 +215,70 @@ def object_breakdown(logs: Iterable[Mapping]) -> dict[str, ObjectCounts]:
             else:
                 out[name].failed[attempt["outcome"]] += 1
     return dict(out)
+
+
+# ---------------------------------------------------------------------------------------------
+# Where a cell's failures come from, by the executed grasp (`benchmarks/log_breakdown.py`).
+
+SCORE_EDGES = (0.7, 0.8, 0.85, 0.9, 0.93, 0.95, 0.97, 1.0)
+TILT_EDGES = (0.0, 10.0, 20.0, 30.0, 45.0, 90.0, 180.0)
+
+
+def how_chosen(attempt: Mapping) -> str:
+    """How SuperGrasp chose an attempt's grasp, from its log's "info" (`eval.supergrasp`): "first plan" or
+    "second plan" (the first found no grasp), "evaluated" or "refined", "on the fit" (`sgjax.stage1.fit_grasps`)
+    or "transferred", "robust choice" (judged among finalists) or "alone". Other methods: their "kind", or "-"."""
+    info = attempt.get("info") or {}
+    kind = info.get("kind")
+    if kind not in ("evaluated", "refined"):
+        return str(kind) if kind else "-"
+    plan = "second plan" if info.get("fallback") else "first plan"
+    source = "on the fit" if info.get("fit_grasp") else "transferred"
+    judged = "robust choice" if "robust_rank" in info else "alone"
+    return f"{plan}, {kind}, {source}, {judged}"
+
+
+def bin_label(value: float | None, edges: Iterable[float]) -> str:
+    """The interval of sorted `edges` that holds value, as "lo-hi" ((lo, hi], the first one [lo, hi]);
+    "none" for a missing value, "< lo" / "> hi" outside the edges."""
+    edges = list(edges)
+    if value is None or not np.isfinite(value):
+        return "none"
+    if value < edges[0]:
+        return f"< {edges[0]:g}"
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        if value <= hi:
+            return f"{lo:g}-{hi:g}"
+    return f"> {edges[-1]:g}"
+
+
+def approach_tilt(pose) -> float:
+    """Degrees between a grasp's approach axis (the pose's z column, [4, 4] gripper -> world) and straight
+    down (world -z): 0 for a top-down grasp, 90 for a horizontal one."""
+    z = np.asarray(pose, np.float64)[:3, 2]
+    return float(np.degrees(np.arccos(np.clip(-z[2] / np.linalg.norm(z), -1.0, 1.0))))
+
+
+def outcomes_by(logs: Iterable[Mapping], key: Callable[[Mapping], Hashable]) -> dict[Hashable, collections.Counter]:
+    """Every attempt's "outcome" counted by key(attempt) -> {key: Counter(outcome)}."""
+    out: dict[Hashable, collections.Counter] = collections.defaultdict(collections.Counter)
+    for log in logs:
+        for attempt in log["attempts"]:
+            out[key(attempt)][attempt["outcome"]] += 1
+    return dict(out)
+
+
+def stopped_at(logs: Iterable[Mapping], bar: float) -> Summary:
+    """The metrics had every scene stopped at its first attempt whose logged score is <= bar (that
+    attempt and all after it never made): a stop rule read off the logs, exact because the attempts before
+    it are unchanged. An attempt without a score (no grasp) stops the scene too."""
+    stopped = []
+    for log in logs:
+        attempts = []
+        for attempt in log["attempts"]:
+            score = attempt.get("score")
+            if score is None or not score > bar:
+                break
+            attempts.append(attempt)
+        stopped.append({**log, "attempts": attempts})
+    return summarize(stopped)

@@ -207,6 +207,33 @@ def test_objects_not_grasped_and_failed_on_are_counted_by_name():
     assert "| lens | 2 / 3, 2 | 1 / 1, 0 |" in table and "box" not in table  # never missed nor failed on
 
 
+def test_attempts_are_broken_down_by_how_chosen_score_and_tilt():
+    infos = [{"kind": "evaluated", "robust_rank": 0}, {"kind": "refined", "fallback": True, "fit_grasp": True}, {}]
+    assert [metrics.how_chosen({"info": i}) for i in infos] == [
+        "first plan, evaluated, transferred, robust choice", "second plan, refined, on the fit, alone", "-"]
+    edges = metrics.SCORE_EDGES
+    assert [metrics.bin_label(v, edges) for v in (0.7, 0.75, 0.8, 0.81, 0.5, None, float("nan"), 1.2)] == [
+        "0.7-0.8", "0.7-0.8", "0.7-0.8", "0.8-0.85", "< 0.7", "none", "none", "> 1"]
+    down = np.diag([1.0, -1.0, -1.0, 1.0])  # approach (z column) straight down
+    tilted = np.eye(4)
+    c, s = np.cos(np.radians(30)), np.sin(np.radians(30))
+    tilted[:3, :3] = down[:3, :3] @ np.array([[1, 0, 0], [0, c, -s], [0, s, c]])  # 30 deg about the closing axis
+    side = np.eye(4)[[0, 2, 1, 3]]  # approach along world y
+    assert [round(metrics.approach_tilt(p), 6) for p in (down, tilted, side, np.eye(4))] == [0.0, 30.0, 90.0, 180.0]
+    a, b = log(3, "sfs"), log(2, "ff")
+    for attempt, score, outcome in zip(a["attempts"] + b["attempts"], [0.9, 0.75, 0.95, 0.72, 0.99],
+                                       ["success", "dropped_lift", "success", "collision_approach", "dropped_lift"]):
+        attempt.update(score=score, outcome=outcome)
+    by = metrics.outcomes_by([a, b], lambda t: metrics.bin_label(t["score"], edges))
+    assert by == {"0.85-0.9": {"success": 1}, "0.7-0.8": {"dropped_lift": 1, "collision_approach": 1},
+                  "0.93-0.95": {"success": 1}, "0.97-1": {"dropped_lift": 1}}
+    # The stop rule: each scene ends at its first grasp scored <= the bar, the attempts before it unchanged.
+    assert metrics.stopped_at([a, b], 0.7) == metrics.summarize([a, b])
+    stopped = metrics.stopped_at([a, b], 0.8)  # a keeps its first attempt, b none
+    assert (stopped.attempts, stopped.successes, stopped.objects, stopped.gsr) == (1, 1, 5, 1.0)
+    assert metrics.stopped_at([a, b], 0.99).attempts == 0 and metrics.stopped_at([a, b], 0.99).gsr is None
+
+
 def test_tables_follow_table_i_and_table_iii():
     logs = [
         log(10, "ssff", method="gpd", setting="seen-10", seed=0),
