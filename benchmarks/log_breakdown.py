@@ -2,35 +2,34 @@
 
     python benchmarks/log_breakdown.py DIR [DIR ...] [--bars 0.7 0.72 0.75 0.8]
 
-Each DIR is searched for scene logs (`scene_*.json`, e.g. a `sgjax declutter --out` folder or one of its
-logs/<method>/<setting>/seed<k> folders); all of them are pooled. Prints GSR / TSR / GA, then the
-attempts and their success by how SuperGrasp chose the grasp (`eval.metrics.how_chosen`: first or second
-plan, evaluated or refined, on the fit or transferred, judged by the robust choice or alone), by the
-executed grasp's score (is it calibrated?) and by its approach's tilt from straight down, each with the
-failures by outcome; and, per bar, the metrics had each scene stopped at its first grasp scored at or
-below the bar (`eval.metrics.stopped_at`: what a stricter bar on the executed grasp buys in GSR and
-costs in TSR, exactly, from the same logs).
+Each DIR is searched for scene logs (`scene_<index>.json` at any depth, e.g. a `sgjax declutter --out`
+folder or one of its logs/<method>/<setting>/seed<k> folders); all of them are pooled. Prints GSR / TSR /
+GA, then the attempts and their success by how SuperGrasp chose the grasp (`eval.metrics.how_chosen`:
+first or second plan, evaluated or refined, on the fit or transferred, judged by the robust choice or
+alone), by the executed grasp's score (is it calibrated?) and by its approach's tilt from straight down,
+each with the failures by outcome; and, per bar, the metrics had each scene stopped at its first grasp
+scored at or below the bar (`eval.metrics.stopped_at`: what a stricter bar on the executed grasp buys in
+GSR and costs in TSR, exactly, from the same logs).
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 from collections.abc import Callable, Hashable, Mapping
 from pathlib import Path
 
 from eval import metrics
-from eval.report import markdown_table, percent
+from eval.report import logs_under, markdown_table, percent
 
 
 def read_logs(folders: list[Path]) -> list[dict]:
-    """Every scene log under `folders` (recursively, sorted by path); SystemExit naming a folder without any."""
+    """Every scene log under `folders` (`eval.report.logs_under`); SystemExit naming a folder without any."""
     logs = []
     for folder in folders:
-        paths = sorted(Path(folder).rglob("scene_*.json"))
-        if not paths:
-            raise SystemExit(f"{folder}: no scene_*.json logs")
-        logs += [json.loads(p.read_text()) for p in paths]
+        found = logs_under(folder)
+        if not found:
+            raise SystemExit(f"{folder}: no scene_<index>.json logs")
+        logs += found
     return logs
 
 

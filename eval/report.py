@@ -74,11 +74,15 @@ def read_scene_log(path: str | os.PathLike) -> dict | None:
 
 def read_logs(out: str | os.PathLike) -> list[dict]:
     """Every scene log under OUT/logs, in path order."""
-    root = Path(out) / LOGS
+    return logs_under(Path(out) / LOGS)
+
+
+def logs_under(folder: str | os.PathLike) -> list[dict]:
+    """Every scene log (scene_<index>.json) below `folder`, at any depth, in path order ([] if none)."""
+    root = Path(folder)
     if not root.is_dir():
         return []
-    paths = sorted(p for p in root.glob("*/*/seed*/scene_*.json") if re.fullmatch(r"scene_\d+\.json", p.name))
-    return [read_scene_log(p) for p in paths]
+    return [read_scene_log(p) for p in sorted(root.rglob("scene_*.json")) if re.fullmatch(r"scene_\d+\.json", p.name)]
 
 
 # ---------------------------------------------------------------------------------------------------

@@ -207,7 +207,7 @@ def test_objects_not_grasped_and_failed_on_are_counted_by_name():
     assert "| lens | 2 / 3, 2 | 1 / 1, 0 |" in table and "box" not in table  # never missed nor failed on
 
 
-def test_attempts_are_broken_down_by_how_chosen_score_and_tilt():
+def test_attempts_are_broken_down_by_how_chosen_score_and_tilt(tmp_path):
     infos = [{"kind": "evaluated", "robust_rank": 0}, {"kind": "refined", "fallback": True, "fit_grasp": True}, {}]
     assert [metrics.how_chosen({"info": i}) for i in infos] == [
         "first plan, evaluated, transferred, robust choice", "second plan, refined, on the fit, alone", "-"]
@@ -232,6 +232,10 @@ def test_attempts_are_broken_down_by_how_chosen_score_and_tilt():
     stopped = metrics.stopped_at([a, b], 0.8)  # a keeps its first attempt, b none
     assert (stopped.attempts, stopped.successes, stopped.objects, stopped.gsr) == (1, 1, 5, 1.0)
     assert metrics.stopped_at([a, b], 0.99).attempts == 0 and metrics.stopped_at([a, b], 0.99).gsr is None
+    # Logs found at any depth; other JSON beside them (a finalist shard's sidecar) is not a scene log.
+    report.write_scene_log(tmp_path / "x" / "seed3" / "scene_007.json", a)
+    (tmp_path / "x" / "seed3" / "scene_007.states.json").write_text("[]")
+    assert report.logs_under(tmp_path) == [a] and report.logs_under(tmp_path / "none") == []
 
 
 def test_tables_follow_table_i_and_table_iii():

@@ -327,4 +327,3 @@ def crop_function(crop: str) -> Callable[..., Region]:
     if crop not in CROPS:
         raise ValueError(f"unknown crop {crop!r}; known: {', '.join(CROPS)}")
     return crop_swept_regions if crop == "swept" else crop_regions
-
