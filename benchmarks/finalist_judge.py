@@ -38,7 +38,7 @@ def judge_scores(model, samples: dict, clouds: list, perturb: tuple[tuple[float,
     if perturb is None:
         robust = RobustChoice()
         perturb = ((robust.shift, robust.angle_deg),)
-    crop = getattr(model.config, "crop", "enlarged")
+    crop = model.config.crop
     poses = [np.asarray(gripper.perturbed_poses(jnp.asarray(samples["pose"]), shift, angle)) for shift, angle in perturb]
     k = 1 + 5 * len(perturb)
     every = np.concatenate([samples["pose"][:, None], *poses], axis=1).reshape(-1, 4, 4).astype(np.float32)

@@ -31,6 +31,7 @@ from eval import declutter
 from eval.benchmark import resolve_objects
 from eval.declutter import NO_OBJECT, DeclutterConfig, rigid_pose
 from eval.replay import LoggedState, LoggedStates
+from eval.report import is_scene_log
 from sgjax.planner import uncompared
 from sgjax.utils.files import atomic_write_text
 
@@ -235,12 +236,12 @@ def scene_logs(folders: Sequence, objects: str | None = None, scenes=None) -> It
     (resolved once per name); scenes: the scene indices to give (None: all). Raises FileNotFoundError
     for a folder without scene logs."""
     assets: dict = {}
-    folders = list(map(Path, folders))
-    for folder in folders:
-        if not any(folder.glob("scene_*.json")):
+    found = [(folder, sorted(p for p in folder.glob("scene_*.json") if is_scene_log(p))) for folder in map(Path, folders)]
+    for folder, paths in found:
+        if not paths:
             raise FileNotFoundError(f"{folder}: no scene_*.json logs (give a run's logs/supergrasp/<setting>/seed<k> folder)")
-    for folder in folders:
-        for path in sorted(folder.glob("scene_*.json")):
+    for folder, paths in found:
+        for path in paths:
             log = json.loads(path.read_text())
             if scenes is not None and int(log["scene_index"]) not in scenes:
                 continue

@@ -77,12 +77,17 @@ def read_logs(out: str | os.PathLike) -> list[dict]:
     return logs_under(Path(out) / LOGS)
 
 
+def is_scene_log(path: str | os.PathLike) -> bool:
+    """Whether `path` names a scene log, scene_<index>.json (not, e.g., a finalist shard's sidecar)."""
+    return re.fullmatch(r"scene_\d+\.json", Path(path).name) is not None
+
+
 def logs_under(folder: str | os.PathLike) -> list[dict]:
-    """Every scene log (scene_<index>.json) below `folder`, at any depth, in path order ([] if none)."""
+    """Every scene log (`is_scene_log`) below `folder`, at any depth, in path order ([] if none)."""
     root = Path(folder)
     if not root.is_dir():
         return []
-    return [read_scene_log(p) for p in sorted(root.rglob("scene_*.json")) if re.fullmatch(r"scene_\d+\.json", p.name)]
+    return [read_scene_log(p) for p in sorted(root.rglob("scene_*.json")) if is_scene_log(p)]
 
 
 # ---------------------------------------------------------------------------------------------------
