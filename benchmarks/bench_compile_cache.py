@@ -1,6 +1,6 @@
 """A new process's first plan, with JAX's persistent compilation cache cold, warm, and off (run by hand).
 
-    python benchmarks/bench_compile_cache.py [--repeats 1]
+    python -m benchmarks.bench_compile_cache [--repeats 1]
 
 Each measurement is a fresh Python process that builds the default planner (shipped database and
 E-RNet) and plans one synthetic single-view cloud (`sgjax example`'s superquadric) twice: the first

@@ -1,6 +1,6 @@
 """Decluttering benchmark across methods (by hand): Table I (GSR, TSR, GA) and Table III (time per grasp).
 
-    python benchmarks/bench_declutter.py [--methods gpd oracle-topdown] [--setting seen-10] [--scenes 1]
+    python -m benchmarks.bench_declutter [--methods gpd oracle-topdown] [--setting seen-10] [--scenes 1]
                                          [--seed 0] [--out bench_declutter_out] [--objects DIR]
                                          [--n-objects N] [--model RUN_DIR] [--small-db]
 

@@ -1,6 +1,6 @@
 """EMS speed and accuracy on CPU (run by hand; prints a markdown table).
 
-    python benchmarks/bench_ems.py [--clouds 1024] [--repeats 3]
+    python -m benchmarks.bench_ems [--clouds 1024] [--repeats 3]
 
 Speed: fits per second for batch sizes 1, 64 and 1024 of 800-point single-view clouds, after
 compilation (reported separately). Accuracy: relative semi-axis error (frames matched, see
@@ -11,11 +11,11 @@ camera, 800 points, 1 mm noise.
 from __future__ import annotations
 
 import argparse
-import time
 
 import jax
 import numpy as np
 
+from benchmarks.common import time_jitted
 from sgjax.stage1 import ems
 from sgjax.geometry import pointcloud, synthetic
 from sgjax.geometry.superquadric import relative_scale_error
@@ -29,18 +29,6 @@ def make_set(n: int, seed: int = 0, outliers: float = 0.0):
         truths.append(sq)
         clouds.append(synthetic.single_view_cloud(sq, 800, noise_std=0.001, outlier_ratio=outliers, seed=rng))
     return truths, clouds
-
-
-def timed(fn, repeats):
-    t0 = time.perf_counter()
-    jax.block_until_ready(fn())
-    first = time.perf_counter() - t0
-    runs = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        out = jax.block_until_ready(fn())
-        runs.append(time.perf_counter() - t0)
-    return first - min(runs), min(runs), out
 
 
 def main() -> None:
@@ -58,7 +46,7 @@ def main() -> None:
     for b in (1, 64, 1024):
         if b > args.clouds:
             continue
-        compile_s, run_s, out = timed(lambda: ems.fit_superquadrics(points[:b], mask[:b]), args.repeats)
+        compile_s, run_s, out = time_jitted(lambda: ems.fit_superquadrics(points[:b], mask[:b]), args.repeats)
         if b == min(1024, args.clouds):
             result = out
         print(f"| {b} | {compile_s:.1f} | {run_s * 1e3:.1f} | {b / run_s:.0f} |")

@@ -1,6 +1,6 @@
 """E-RNet (Stage 2) speed on CPU (run by hand; prints markdown tables).
 
-    python benchmarks/bench_ernet.py [--repeats 5] [--configs light paper light-swept] [--train-steps 5]
+    python -m benchmarks.bench_ernet [--repeats 5] [--configs light paper light-swept] [--train-steps 5]
 
 Scene: a ~20k-point cluttered tabletop (table plane + single-view clouds of 6 superquadrics, 1 mm
 noise). Candidates: near-top-down grasps on the objects (random tilt <= 30 deg, yaw, width 4-8 cm).
@@ -19,9 +19,9 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
-from bench_ems import timed  # benchmarks/ is on sys.path when run as a script
 from flax import nnx
 
+from benchmarks.common import time_jitted
 from sgjax.stage2 import crops, ernet
 from sgjax.geometry import synthetic
 from sgjax.stage2.ernet import LIGHT_BACKBONE, ERNet, ERNetConfig
@@ -103,7 +103,7 @@ def make_candidates(m: int, centres: np.ndarray, tops: np.ndarray, seed: int = 1
 
 def best_of(fn, repeats: int) -> tuple[float, float]:
     """-> (compile + first call seconds minus a steady call, best steady seconds)."""
-    compile_s, run_s, _ = timed(fn, repeats)
+    compile_s, run_s, _ = time_jitted(fn, repeats)
     return max(compile_s, 0.0), run_s
 
 

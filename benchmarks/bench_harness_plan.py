@@ -1,9 +1,9 @@
 """Planning time per grasp in the decluttering harness: this code against a reference commit (run by hand).
 
-    python benchmarks/bench_harness_plan.py --reference COMMIT [--setting seen-10] [--scenes 0-5]
+    python -m benchmarks.bench_harness_plan --reference COMMIT [--setting seen-10] [--scenes 0-5]
                                             [--method supergrasp] [--rounds 1]
 
-`bench_plan.py` times one plan of a scene's first view; a decluttering run plans again after every
+`benchmarks.bench_plan` times one plan of a scene's first view; a decluttering run plans again after every
 attempt, on a scene that changes a little each time (one object fewer, a neighbour nudged), which is
 where the planner's Stage-1 memory saves its time. This script runs the benchmark's scenes
 (`eval.declutter.run_scene`, seed 0, the method's defaults) with each code in its own process
@@ -23,9 +23,6 @@ import statistics
 import subprocess
 import sys
 import tempfile
-
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from bench_plan import REPO, reference_tree  # noqa: E402
 
 KEYS = ("stage1_s", "stage2_s", "total_s")
 
@@ -97,6 +94,8 @@ def main() -> None:
     if args.worker:
         worker(args.setting, scene_indices(args.scenes), args.method, args.worker)
         return
+    from benchmarks.common import REPO, reference_tree  # not in the worker: a reference tree may predate it
+
     trees = {"current": REPO}
     if args.reference:
         trees = {f"reference {args.reference}": reference_tree(args.reference), "current": REPO}

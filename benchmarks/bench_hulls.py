@@ -1,13 +1,13 @@
 """Collision-hull size against trial speed and trial outcomes on the C engine (run by hand).
 
-    python benchmarks/bench_hulls.py [--objects seen] [--scenes 3] [--objects-per-scene 5] [--trials 128]
+    python -m benchmarks.bench_hulls [--objects seen] [--scenes 3] [--objects-per-scene 5] [--trials 128]
                                      [--hulls 64,32,24,16] [--nthread 2]
 
 `SceneConfig.max_hull_vertices` (MuJoCo's maxhullvert) caps each convex collision piece. The scene is
 made and settled once with the first cap (the reference, the default 64); every other cap recompiles
 the same assets and starts from that settled state, so each trial starts from the same object poses
 (a capped hull is a subset of the full hull's vertices: it only shrinks, never overlaps). The same
-jittered top-down grasps (`bench_sim.candidates`) are run as full trials (no early stop) under every
+jittered top-down grasps (`benchmarks.common.jittered_top_down_grasps`) are run as full trials (no early stop) under every
 cap; "same outcome" compares each trial with the reference cap's. Prints a markdown table.
 """
 
@@ -20,7 +20,8 @@ import os
 
 import numpy as np
 
-from bench_sim import candidates, timed
+from benchmarks.common import jittered_top_down_grasps as candidates
+from benchmarks.common import time_call as timed
 from envs import scene as scene_lib
 from envs import trial
 from envs.objects import load_object_set, tiny_object_set

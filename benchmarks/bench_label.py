@@ -1,7 +1,7 @@
 """Where labelling time goes: per-scene stages of `sgjax label` from its shard records (run by hand).
 
-    python benchmarks/bench_label.py DIR [DIR ...]        # labelled directories (sgjax label --out)
-    python benchmarks/bench_label.py --run N [--objects seen] [--out DIR]   # label N scenes first
+    python -m benchmarks.bench_label DIR [DIR ...]        # labelled directories (sgjax label --out)
+    python -m benchmarks.bench_label --run N [--objects seen] [--out DIR]   # label N scenes first
 
 Each shard's .json records per scene the seconds of: making the scene and rendering it ("scene"),
 the candidates of every source ("candidates": Stage 1 twice and the GPD-style sampler), the grasp

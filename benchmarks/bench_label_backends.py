@@ -1,6 +1,6 @@
 """Labelling speed per trial backend: `sgjax label`'s scenes end to end on the C engine and on MJX (by hand).
 
-    python benchmarks/bench_label_backends.py [--backends cpu,mjx] [--scenes N] [--objects tiny|seen]
+    python -m benchmarks.bench_label_backends [--backends cpu,mjx] [--scenes N] [--objects tiny|seen]
                                               [--size tiny|real] [--small-db] [--nthread 0]
 
 Each backend labels the same scenes with `train.label.label_scene` (nothing is written). Every scene

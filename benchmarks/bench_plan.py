@@ -1,6 +1,6 @@
 """Planner benchmark: Stage-1, Stage-2 and total wall time per plan on CPU, after compile (run by hand).
 
-    python benchmarks/bench_plan.py [--repeats 5] [--small-db] [--model RUN_DIR] [--objects 5]
+    python -m benchmarks.bench_plan [--repeats 5] [--small-db] [--model RUN_DIR] [--objects 5]
                                     [--setting seen-10] [--scenes 7] [--reference COMMIT] [--rounds 2]
 
 Scene: a tabletop (30k points on a 60 cm table, 1 mm noise) with `--objects` boxes and cylinders
@@ -35,7 +35,6 @@ import time
 import numpy as np
 
 CAMERA = np.array([0.0, -0.35, 0.75])
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 KEYS = ("stage1_s", "stage2_s", "total_s")
 
 
@@ -141,18 +140,6 @@ def worker(scenes_path: str, out_path: str, repeats: int, model_dir: str | None,
         json.dump({"info": info, "results": results}, f)
 
 
-def reference_tree(commit: str) -> str:
-    """A detached git worktree of commit under $SGJAX_CACHE/bench/ (made once) -> its path."""
-    from sgjax.utils.cache import cache_dir
-
-    sha = subprocess.run(["git", "-C", REPO, "rev-parse", commit], check=True, capture_output=True, text=True).stdout.strip()
-    path = os.path.join(cache_dir(), "bench", f"ref-{sha[:12]}")
-    if not os.path.isdir(path):
-        os.makedirs(os.path.dirname(path), exist_ok=True)
-        subprocess.run(["git", "-C", REPO, "worktree", "add", "--detach", path, sha], check=True, capture_output=True)
-    return path
-
-
 def run_worker(tree: str, scenes_path: str, args, tmp: str, tag: str) -> dict:
     """This script's worker in a new process, importing sgjax (and envs, eval) from tree."""
     out = os.path.join(tmp, f"{tag}.json")
@@ -211,6 +198,7 @@ def main() -> None:
     if args.worker:
         worker(args.worker, args.worker_out, args.repeats, args.model, args.small_db, sizes)
         return
+    from benchmarks.common import REPO, reference_tree  # not in the worker: a reference tree may predate it
 
     with tempfile.TemporaryDirectory() as tmp:
         scenes_path = os.path.join(tmp, "scenes.npz")

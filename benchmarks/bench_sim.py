@@ -1,6 +1,6 @@
 """Simulation speed: scenes, the depth camera and grasp trials on the C engine and MJX (by hand).
 
-    python benchmarks/bench_sim.py [--trials 128] [--nthread 2] [--mjx-trials 8] [--mjx-objects 2]
+    python -m benchmarks.bench_sim [--trials 128] [--nthread 2] [--mjx-trials 8] [--mjx-objects 2]
                                    [--objects tiny|seen|...] [--skip-cpu | --skip-mjx]
                                    [--mjx-backend mjx|mjx-jax|mjx-warp]
 
@@ -16,38 +16,14 @@ from __future__ import annotations
 import argparse
 import functools
 import os
-import time
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
-from envs import camera, simple_grasps, trial
+from benchmarks.common import jittered_top_down_grasps as candidates
+from benchmarks.common import time_call as timed
+from envs import camera, trial
 from envs import scene as scene_lib
 from envs.objects import load_object_set, tiny_object_set
-
-
-def candidates(scene: scene_lib.Scene, n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """n jittered top-down grasps over the scene's objects: targets[n], poses[n, 4, 4], widths[n]."""
-    rng = np.random.default_rng(seed)
-    targets, poses, widths = [], [], []
-    for index in np.flatnonzero(scene.present):
-        p, w = simple_grasps.top_down_grasps(scene, int(index))
-        targets += [int(index)] * len(w)
-        poses += list(p)
-        widths += list(w)
-    pick = rng.integers(0, len(poses), n)
-    poses = np.asarray(poses)[pick]
-    turn = Rotation.from_euler("z", rng.normal(0.0, 10.0, (n, 1)), degrees=True).as_matrix()
-    poses[:, :3, :3] = poses[:, :3, :3] @ turn
-    poses[:, :3, 3] += rng.normal(0.0, 0.005, (n, 3))
-    return np.asarray(targets)[pick], poses, np.asarray(widths)[pick]
-
-
-def timed(fn):
-    """(wall seconds, CPU seconds of all this process's threads, result)."""
-    start, cpu = time.perf_counter(), time.process_time()
-    out = fn()
-    return time.perf_counter() - start, time.process_time() - cpu, out
 
 
 def main() -> None:

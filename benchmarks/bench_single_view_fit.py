@@ -1,6 +1,6 @@
 """Single-view superquadric fits on rendered clouds: extent errors and surviving Stage-1 candidates.
 
-Run by hand:  python benchmarks/bench_single_view_fit.py [--scenes 14] [--objects 4] [--per-object]
+Run by hand:  python -m benchmarks.bench_single_view_fit [--scenes 14] [--objects 4] [--per-object]
 
 Scenes of the "seen" object set are dropped onto the table by the simulator (`envs.scene.make_scene`)
 and rendered by the default camera (`envs.camera`, 0.71 m away, 50 deg down); every object with at

@@ -1,6 +1,6 @@
 """Stage-1 benchmark: time per object (fit + match + transfer + filter), matching alone, candidate counts.
 
-Run by hand:  python benchmarks/bench_stage1.py [--small-db] [--objects 48]
+Run by hand:  python -m benchmarks.bench_stage1 [--small-db] [--objects 48]
 Prints markdown tables. Uses the default primitive database from the cache (built on first use).
 Queries are single-view clouds (800 points, 1 mm noise) of random primitives standing on a table.
 """

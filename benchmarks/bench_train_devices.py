@@ -1,7 +1,7 @@
 """Training throughput on 1 vs N devices (`TrainConfig.devices`, `sgjax train --devices N`); run by hand,
 prints a markdown table.
 
-    python benchmarks/bench_train_devices.py [--model light|tiny] [--devices 2] [--steps 30] [--rounds 2]
+    python -m benchmarks.bench_train_devices [--model light|tiny] [--devices 2] [--steps 30] [--rounds 2]
 
 Each measurement is a fresh interpreter started with XLA_FLAGS=--xla_force_host_platform_device_count=N
 (the host split into N CPU devices), so both settings run in the same kind of process and differ only in

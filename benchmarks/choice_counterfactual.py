@@ -1,12 +1,11 @@
 """How good is the planner's choice among its finalists? Replay SuperGrasp benchmark scenes and simulate
 every finalist at every state (`eval.counterfactual`), then score choice rules on the same states.
 
-    python benchmarks/choice_counterfactual.py LOG_DIR [LOG_DIR ...] [--objects SET] [--out DIR]
+    python -m benchmarks.choice_counterfactual LOG_DIR [LOG_DIR ...] [--objects SET] [--out DIR]
                                                [--scenes 0-9]
 
-LOG_DIR: a run's `logs/supergrasp/<setting>/seed<k>` folder (`sgjax declutter` or
-`benchmarks/filter_ablation.py --variants default`), made by today's default planner and checkpoint on
-this machine (a replay whose plan differs from the log stops that scene, and says so). Per scene the
+LOG_DIR: a run's `logs/supergrasp/<setting>/seed<k>` folder (`sgjax declutter --method supergrasp`), made
+by today's default planner and checkpoint on this machine (a replay whose plan differs from the log stops that scene, and says so). Per scene the
 states go to OUT/<log folder's parent names>/scene_XXX.json (resumable). Prints: states, how often the
 executed grasp succeeded, how often any finalist would have (the oracle), and each rule of
 `eval.counterfactual.RULES` on the same states, with the states where it and the executed choice differ.

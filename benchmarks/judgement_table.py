@@ -1,6 +1,6 @@
 """Compare training runs by their held-out judgement (run by hand; prints a markdown table).
 
-    python benchmarks/judgement_table.py RUN_DIR [RUN_DIR ...] [--epoch N]
+    python -m benchmarks.judgement_table RUN_DIR [RUN_DIR ...] [--epoch N]
 
 Reads each run's metrics.json (`sgjax train`) and prints, for its last epoch (or --epoch N), the
 held-out scenes' AUC overall and per candidate source, calibration error, the mean score of collided

@@ -1,6 +1,6 @@
 """Where a set of benchmark cells' failures come from, read off their scene logs (no simulation).
 
-    python benchmarks/log_breakdown.py DIR [DIR ...] [--bars 0.7 0.72 0.75 0.8]
+    python -m benchmarks.log_breakdown DIR [DIR ...] [--bars 0.7 0.72 0.75 0.8]
 
 Each DIR is searched for scene logs (`scene_<index>.json` at any depth, e.g. a `sgjax declutter --out`
 folder or one of its logs/<method>/<setting>/seed<k> folders); all of them are pooled. Prints GSR / TSR /

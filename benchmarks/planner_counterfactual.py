@@ -1,17 +1,18 @@
 """A change of the planner measured on identical states: replay SuperGrasp benchmark scenes with the
-default planner and let a variant plan every logged state too (`eval.counterfactual.replay_alternative`);
-where it chooses another grasp, that grasp is executed from the same state. Paired per state, so a change
-that touches few decisions shows without the noise of whole episodes (a 10-scene cell moves by ±5 points
-by its scenes alone); what it does to later states only a benchmark run shows.
+default planner and let another configuration (a planner preset) plan every logged state too
+(`eval.counterfactual.replay_alternative`); where it chooses another grasp, that grasp is executed from the
+same state. Paired per state, so a change that touches few decisions shows without the noise of whole
+episodes (a 10-scene cell moves by ±5 points by its scenes alone); what it does to later states only a
+benchmark run shows.
 
-    python benchmarks/planner_counterfactual.py LOG_DIR [LOG_DIR ...] --variant NAME [--objects SET]
-                                                [--out DIR] [--scenes 0-9] [--judge RUN_DIR]
+    python -m benchmarks.planner_counterfactual LOG_DIR [LOG_DIR ...] --preset NAME [--objects SET]
+                                                [--out DIR] [--scenes 0-9]
 
-LOG_DIR: as for benchmarks/choice_counterfactual.py (today's default planner on this machine). NAME: a
-variant of benchmarks/filter_ablation.py. Per scene the states go to OUT/<variant>/<setting>/<seed
-folder>/scene_XXX.json (resumable). Prints, by how the logged grasp was chosen (`plan_kind`): states,
-logged successes, the variant's successes on the same states, the states where it chose another grasp,
-and where it chose none.
+LOG_DIR: as for benchmarks.choice_counterfactual (today's default planner on this machine). NAME: a planner
+preset (`sgjax.presets.names()`; a change to measure is registered there), with the benchmark's workspace
+crop of the Stage-2 cloud. Per scene the states go to OUT/<preset>/<setting>/<seed folder>/scene_XXX.json
+(resumable). Prints, by how the logged grasp was chosen (`plan_kind`): states, logged successes, the
+preset's successes on the same states, the states where it chose another grasp, and where it chose none.
 """
 
 from __future__ import annotations
@@ -20,16 +21,17 @@ import argparse
 from collections import Counter
 from pathlib import Path
 
-from filter_ablation import variant_config  # benchmarks/ is on sys.path when run as a script
+from envs.scene import stage2_scene_cloud
 from eval.benchmark import scene_indices
 from eval.counterfactual import AlternativeState, replay_alternative, replay_logs
 from eval.methods import make_method
+from sgjax import presets
 
 
 def table(states: list[AlternativeState]) -> str:
-    """Markdown: per logged kind (and all), states, successes logged / variant, differing, none."""
+    """Markdown: per logged kind (and all), states, successes logged / by the preset, differing, none."""
     kinds = sorted(Counter(s.logged_kind for s in states).items(), key=lambda kv: -kv[1])
-    lines = ["| logged grasp chosen | states | logged succeed | variant succeeds | variant differs | variant plans none |",
+    lines = ["| logged grasp chosen | states | logged succeed | preset succeeds | preset differs | preset plans none |",
              "|---|---:|---:|---:|---:|---:|"]
     for kind, group in [*((k, [s for s in states if s.logged_kind == k]) for k, _ in kinds), ("all", states)]:
         n = len(group)
@@ -43,16 +45,15 @@ def table(states: list[AlternativeState]) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("logs", nargs="+")
-    parser.add_argument("--variant", required=True, help="a variant of benchmarks/filter_ablation.py")
+    parser.add_argument("--preset", required=True, choices=presets.names(), help="the planner preset to compare")
     parser.add_argument("--objects", help="object set or mesh folder instead of the setting's")
     parser.add_argument("--out", default="planner_counterfactual_out")
     parser.add_argument("--scenes", help="scene indices, e.g. 0-9 (default: every log in the folder)")
-    parser.add_argument("--judge", metavar="RUN_DIR", help="the variant's finalists judged by this network (`Planner(judge=)`)")
     args = parser.parse_args()
 
     method = make_method("supergrasp")
-    alternative = make_method("supergrasp", config=variant_config(args.variant), judge=args.judge)
-    label = args.variant if not args.judge else f"{args.variant}+judge-{Path(args.judge).name}"
+    alternative = make_method("supergrasp", config=presets.get(args.preset, scene_cloud=stage2_scene_cloud()))
+    label = args.preset
     replay = lambda log, objects: replay_alternative(log, objects, method, alternative)
     states: list[AlternativeState] = []
     stopped = 0

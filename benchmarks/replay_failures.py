@@ -1,7 +1,7 @@
 """Why a method's grasps fail, from its benchmark logs: replay each scene's grasps in simulation, with our
 gripper and with a Panda hand (issue 22: which contacts, which phase, and would a Panda fail too).
 
-    python benchmarks/replay_failures.py RESULTS_DIR --method contact-graspnet --setting seen-10
+    python -m benchmarks.replay_failures RESULTS_DIR --method contact-graspnet --setting seen-10
                                          [--seed 0] [--scenes 0-29] [--other panda|none] [--out DIR]
 
 RESULTS_DIR is a `sgjax declutter --out` folder. Each scene log is replayed (`eval.replay.replay_scene`:

@@ -19,10 +19,9 @@ Object sets (`load_object_set(name)`):
   * "all" = every set above but tiny (everything `sgjax objects prepare` builds by default).
   * "tapered": 2 cylinders, 2 frusta and an open cup of the same sizes (solids of revolution), for
     checking that single views of tapered objects get grasps as good as cylinders' (a superquadric
-    cannot taper: `benchmarks/tapered_objects.py`, tests/test_tapered.py). Never labelled.
+    cannot taper: tests/test_tapered.py, docs/limitations.md). Never labelled.
   * "flat": two lenses, a pebble, a puck and a tile, 1.8-2.5 cm tall, resting on their largest face, for
-    checking that thin lying objects get grasps (`benchmarks/tapered_objects.py --objects flat`,
-    tests/test_flat.py). Never labelled.
+    checking that thin lying objects get grasps (tests/test_flat.py). Never labelled.
   * any folder of .obj/.stl/.ply meshes in metres (searched recursively): source "user", no size filter.
 A mesh that cannot be prepared is reported and recorded in `cache_dir("objects", "sets", SET)/failures.json`.
 A default set (`OBJECT_SETS`) never shrinks silently: `load_object_set` raises `ObjectSetError` naming every

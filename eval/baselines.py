@@ -44,7 +44,7 @@ from flax import nnx
 from sgjax.samplers import gpd as gpd_sampler
 from eval.protocol import Decision, near_grasps
 from sgjax.geometry import gripper, pointcloud
-from sgjax import planner
+from sgjax import policy
 from sgjax.geometry.gripper import GripperSpec
 from sgjax.stage1.filters import lift_to_plane
 from sgjax.stage1.pipeline import Stage1Config
@@ -86,7 +86,7 @@ class BaselineConfig:
             raise ValueError("max_candidates and stage1_batch_sizes must be >= 1")
         if self.min_object_points < pointcloud.MIN_POINTS:
             raise ValueError(f"min_object_points must be >= {pointcloud.MIN_POINTS}")
-        planner.check_thresholds(self)
+        policy.check_thresholds(self)
 
     @property
     def spec(self) -> GripperSpec:
@@ -113,7 +113,7 @@ class CandidateSet:
 
 
 def _padded(poses, widths, target, slots: int, found: int, reason: str = "", info=None) -> CandidateSet:
-    out_p, out_w = planner.padded_batch(poses, widths, slots)  # the planner's Stage-2 padding
+    out_p, out_w = policy.padded_batch(poses, widths, slots)  # the planner's Stage-2 padding
     out_t = np.full(slots, -1, np.int64)
     out_t[:len(widths)] = target
     return CandidateSet(out_p, out_w, len(widths), found, out_t, reason, dict(info or {}))
@@ -215,7 +215,7 @@ class Stage1Candidates:
 
 @functools.cache
 def _decide():
-    from sgjax.planner import decide
+    from sgjax.policy import decide
 
     return jax.jit(decide)
 
@@ -322,25 +322,25 @@ class GPDStage2Method(_CandidateMethod):
         choice = decide_again(eval_prob, refine_prob, valid)
         refine_score = refine_prob
         extra = {"valid": int(valid.sum())}
-        if cfg.use_refinement and cfg.refine_rescore and choice["kind"] != planner.KIND_EVALUATED:
+        if cfg.use_refinement and cfg.refine_rescore and choice["kind"] != policy.KIND_EVALUATED:
             # As the planner: the refine head's best proposals judged at their refined pose (`rescored_refinements`).
             def judge(index, variant):
                 n = len(index)
                 # Padded to the one shape this method scores: no new compile.
-                judged = score_fn(*planner.padded_refinements(cands.poses, cands.widths, index, variant,
+                judged = score_fn(*policy.padded_refinements(cands.poses, cands.widths, index, variant,
                                                               len(cands.widths), spec))
                 return np.where(np.asarray(judged.valid)[:n], np.asarray(judged.eval_prob)[:n], 0.0)
 
-            refine_score = planner.rescored_refinements(refine_prob, valid, cfg.refine_rescore, judge)
+            refine_score = policy.rescored_refinements(refine_prob, valid, cfg.refine_rescore, judge)
             choice = decide_again(eval_prob, refine_score, valid)
         rejected = 0
-        if choice["kind"] == planner.KIND_REFINED:
+        if choice["kind"] == policy.KIND_REFINED:
             collides = _RefinedCollisions(cands, points, labels, cfg, seed)
-            choice, rejected = planner.collision_free(choice, eval_prob, refine_score, valid, collides, decide_again)
+            choice, rejected = policy.collision_free(choice, eval_prob, refine_score, valid, collides, decide_again)
         index, kind, variant, score = choice["index"], choice["kind"], choice["variant"], choice["score"]
         if rejected:
             extra["refinements_rejected"] = rejected
-        if kind == planner.KIND_NONE:
+        if kind == policy.KIND_NONE:
             if not valid.any():
                 reason = f"none of the {cands.n} candidates has a scene point in its closing region (E-RNet valid = False)"
             else:
@@ -355,7 +355,7 @@ class GPDStage2Method(_CandidateMethod):
                     reason += f" and best {what} {best:.2f} <= {cfg.refine_threshold:g}"
             return None, 0.0, score, reason, extra
         pose = cands.poses[index]
-        if kind == planner.KIND_REFINED:
+        if kind == policy.KIND_REFINED:
             pose = np.asarray(choice["pose"], np.float64)
             extra.update(kind="refined", refine_variant=variant)
         else:
@@ -371,7 +371,7 @@ def _choice(out) -> dict:
 
 
 class _RefinedCollisions:
-    """`collides(index)` for `sgjax.planner.collision_free` on GPD-style candidates: every refined variant
+    """`collides(index)` for `sgjax.policy.collision_free` on GPD-style candidates: every refined variant
     of candidate `index` under the generator's own collision test (`gpd_sampler.hand_collisions`) against
     the observed objects other than the grasped one (the object with most points between the fingers:
     it lies in E-RNet's crop, whose refine head judged how refinements fare against it) and the table."""

@@ -41,7 +41,7 @@ The conversion (checked against the wheel's source, cgn_pytorch/contact_graspnet
   * Opening: NVlabs' original opens to the predicted width + 5 mm (TEST.extra_opening), at most the
     stroke (CGNConfig.opening "predicted"). cgn-pytorch 0.4.3's |w| are far too small for that (median
     1.7 cm; a finger box holds observed target points in 96 % of its confident grasps), so by default the
-    hand opens fully ("full": 20 %); benchmarks/bench_cgn_widths.py, docs/benchmark.md.
+    hand opens fully ("full": 20 %); docs/benchmark.md.
   * Table: CGN's training scenes were collision-checked with the table lowered 2 cm (NVlabs'
     tools/create_table_top_scenes.py, TableScene(lower_table=0.02)), so slight table contact counts as
     positive; this harness fails any table contact. Grasps whose open hand (fingers and palm boxes,

@@ -9,9 +9,6 @@ one batched trial. That answers, on identical states and without the noise of di
 (a) how often some finalist would have succeeded (what a better choice could reach), and (b) how another
 rule over the finalists' scores would have done (`rule_successes`). The episode goes on as logged.
 
-The same walk gives a judge of the finalists its training data (`replay_finalist_trials`: every
-finalist executed with its refinements, and the state's Stage-2 cloud; `sgjax label-finalists`).
-
 The same walk over the logged states (`LoggedStates`) measures a change of the planner itself
 (`replay_alternative`): another planner plans every state too, and its grasp, where it differs, is
 executed from that state.
@@ -26,13 +23,12 @@ from pathlib import Path
 
 import numpy as np
 
-from envs import trial as trial_lib
 from eval import declutter
 from eval.benchmark import resolve_objects
 from eval.declutter import NO_OBJECT, DeclutterConfig, rigid_pose
 from eval.replay import LoggedState, LoggedStates
 from eval.report import is_scene_log
-from sgjax.planner import uncompared
+from sgjax.policy import uncompared
 from sgjax.utils.files import atomic_write_text
 
 
@@ -116,65 +112,9 @@ def replay_choices(log: dict, objects: Sequence, method, config: DeclutterConfig
     return states, replay.reproduced
 
 
-@dataclasses.dataclass(frozen=True)
-class FinalistTrials:
-    """A state's finalists executed with their refinements, as training data for a judge: the attempt
-    index, the plan's seed, the Stage-2 cloud the plan cropped from (cloud [C, 3] float32,
-    `Planner.stage2_cloud`), and per simulated finalist (M of them): pose [M, 4, 4] (as executed), width
-    [M], target [M] (the object lifted) and target_name [M] (its name), outcome [M, 1 + K]
-    (`envs.trial.Outcome` codes: the grasp, then its K refinements, `envs.trial.run_grasp_with_refinements`),
-    label [M, 1 + K] (success), eval_prob, robust_score [M] (the planner's scores) and chosen [M] (the
-    logged grasp)."""
-
-    attempt: int
-    seed: int
-    cloud: np.ndarray
-    pose: np.ndarray
-    width: np.ndarray
-    target: np.ndarray
-    target_name: tuple[str, ...]
-    outcome: np.ndarray
-    label: np.ndarray
-    eval_prob: np.ndarray
-    robust_score: np.ndarray
-    chosen: np.ndarray
-
-
-def replay_finalist_trials(log: dict, objects: Sequence, method,
-                           config: DeclutterConfig | None = None) -> tuple[list[FinalistTrials], bool]:
-    """Replay scene log `log` with `method` (the planner that made it, with its robust choice) and, at each
-    state where it judged two or more finalists that would lift an object, execute each of them and its
-    refinements from that state (`FinalistTrials`). What a judge of the finalists must tell apart: the
-    same planner's near-equal candidates on the states it meets, with their simulated outcomes.
-
-    Returns (states, reproduced) as `replay_choices`; the same ValueErrors."""
-    if not hasattr(method, "full_plan") or getattr(method, "config", None) is None or method.config.robust is None:
-        raise ValueError("replay_finalist_trials needs a SuperGrasp planner method with PlannerConfig.robust (its finalists)")
-    replay = LoggedStates(log, objects, method, config)
-    out: list[FinalistTrials] = []
-    for state in replay:
-        if state.target is None or "robust_score" not in state.plan.scores:
-            continue
-        rows = [r for r in _finalists(state) if r["target"] is not None]
-        if len(rows) < 2:
-            continue
-        cfg = replay.config
-        poses, widths = np.stack([r["pose"] for r in rows]), np.asarray([r["width"] for r in rows])
-        targets = np.asarray([r["target"] for r in rows], np.int64)
-        labels, result = trial_lib.run_grasp_with_refinements(state.scene, targets, poses, widths, backend=cfg.backend,
-                                                              config=cfg.trial, nthread=cfg.nthread)
-        out.append(FinalistTrials(
-            state.attempt, int(state.seed), method.planner.stage2_cloud(state.obs.points, state.seed),
-            poses.astype(np.float32), widths.astype(np.float32), targets,
-            tuple(state.scene.assets[int(t)].name for t in targets), result.outcome.reshape(len(rows), -1).astype(np.int8),
-            np.asarray(labels, bool), np.asarray([r["eval_prob"] for r in rows], np.float32),
-            np.asarray([r["robust_score"] for r in rows], np.float32), np.asarray([r["chosen"] for r in rows], bool)))
-    return out, replay.reproduced
-
-
 def plan_kind(plan, threshold: float) -> str:
     """How a plan's grasp was chosen: "compared" (an evaluated grasp among two or more passing candidates),
-    "lone" or "refined" (`sgjax.planner.uncompared`), "none" (no grasp); ", second plan" added when it came
+    "lone" or "refined" (`sgjax.policy.uncompared`), "none" (no grasp); ", second plan" added when it came
     from the second plan (`Plan.fallback`)."""
     if not plan.ok:
         return "none"
@@ -273,7 +213,7 @@ def replay_logs(folders: Sequence, out, replay: Callable, objects: str | None = 
 
 
 # A rule ranks a state's finalists: finalist -> key, the highest executed (ties: the better evaluated,
-# then the earlier row, as `sgjax.planner.robust_choice` breaks them).
+# then the earlier row, as `sgjax.policy.robust_choice` breaks them).
 RULES: dict[str, Callable[[Finalist], float]] = {
     "executed": lambda f: float(f.chosen),
     "highest evaluation (the paper)": lambda f: f.eval_prob,

@@ -68,16 +68,16 @@ def _oracle(**options) -> Method:
 
 
 def _supergrasp(use_refinement: bool) -> Callable[..., Method]:
-    def factory(model=None, small_db: bool = False, db=None, config=None, judge=None) -> Method:
+    def factory(model=None, small_db: bool = False, db=None, config=None, preset: str = "default") -> Method:
         from eval.supergrasp import PlannerMethod
 
         name = "supergrasp" if use_refinement else "supergrasp-norefine"
-        return PlannerMethod(name, use_refinement, model=model, small_db=small_db, db=db, config=config, judge=judge)
+        return PlannerMethod(name, use_refinement, model=model, small_db=small_db, db=db, config=config, preset=preset)
 
     return factory
 
 
-_PLANNER_OPTIONS = ("model", "small_db", "db", "config", "judge")
+_PLANNER_OPTIONS = ("model", "small_db", "db", "config")
 
 
 def _pointnetgpd(generator: str) -> Callable[..., Method]:
@@ -171,14 +171,30 @@ def method_names(available_only: bool = False) -> list[str]:
     return [n for n, info in METHODS.items() if not available_only or info.unavailable_reason() is None]
 
 
-def check_method(name: str, **options) -> MethodInfo:
-    """The registry entry of `name` if it can run with `options` (None / False values are ignored).
+def split_preset(name: str) -> tuple[str, str]:
+    """A method name with an optional planner preset, "supergrasp@paper" -> ("supergrasp", "paper");
+    without one the preset is "default" (`sgjax.presets`)."""
+    base, at, preset = name.partition("@")
+    return base, (preset if at else "default")
 
-    Raises UnknownMethod, MethodUnavailable or ValueError (an option the method does not take).
+
+def check_method(name: str, **options) -> MethodInfo:
+    """The registry entry of `name` ("method" or "method@preset" for the planner's methods) if it can run
+    with `options` (None / False values are ignored).
+
+    Raises UnknownMethod, MethodUnavailable or ValueError (an option the method does not take, a preset
+    of a method without presets, an unknown preset).
     """
+    name, preset = split_preset(name)
     info = METHODS.get(name)
     if info is None:
         raise UnknownMethod(f"unknown method {name!r}: expected one of {', '.join(METHODS)}")
+    if preset != "default":
+        if info.factory is None or info.options != _PLANNER_OPTIONS:
+            raise ValueError(f"method {name!r} takes no planner preset (only supergrasp and supergrasp-norefine do)")
+        from sgjax import presets
+
+        presets.get(preset)  # an unknown name raises, listing the known ones
     reason = info.unavailable_reason()
     if reason is not None:
         raise MethodUnavailable(f"method {name!r} cannot run: {reason}")
@@ -193,4 +209,6 @@ def make_method(name: str, **options) -> Method:
     """Build method `name` with `options` (see `METHODS[name].options`); options set to None or False
     are dropped. Raises as `check_method`."""
     info = check_method(name, **options)
-    return info.factory(**{k: v for k, v in options.items() if v is not None and v is not False})
+    given = {k: v for k, v in options.items() if v is not None and v is not False}
+    _, preset = split_preset(name)
+    return info.factory(**given, preset=preset) if preset != "default" else info.factory(**given)

@@ -78,7 +78,7 @@ def read_logs(out: str | os.PathLike) -> list[dict]:
 
 
 def is_scene_log(path: str | os.PathLike) -> bool:
-    """Whether `path` names a scene log, scene_<index>.json (not, e.g., a finalist shard's sidecar)."""
+    """Whether `path` names a scene log, scene_<index>.json (not, e.g., other JSON beside it)."""
     return re.fullmatch(r"scene_\d+\.json", Path(path).name) is not None
 
 
@@ -102,10 +102,11 @@ def _group(logs: Iterable[Mapping]) -> dict[tuple[str, str, int], list[Mapping]]
 
 
 def _method_order(names: Iterable[str]) -> list[str]:
-    from eval.methods import METHODS
+    from eval.methods import METHODS, split_preset
 
     order = list(METHODS)
-    return sorted(set(names), key=lambda n: (order.index(n) if n in order else len(order), n))
+    base = lambda n: split_preset(n)[0]  # "supergrasp@paper" sits beside "supergrasp"
+    return sorted(set(names), key=lambda n: (order.index(base(n)) if base(n) in order else len(order), n))
 
 
 def _setting_order(names: Iterable[str]) -> list[str]:

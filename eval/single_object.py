@@ -1,7 +1,7 @@
 """One object alone on the table: seeded placements, the benchmark camera's view, and grasp trials on it.
 
 For checks of how a method fares on one kind of shape (e.g. tapered objects against cylinders:
-`benchmarks/tapered_objects.py`, tests/test_tapered.py), without the clutter of the decluttering
+tests/test_tapered.py, tests/test_flat.py), without the clutter of the decluttering
 benchmark. Objects are assets with their axis of revolution (if any) along z.
 """
 

@@ -2,10 +2,11 @@
 
 The planner is imported lazily, so the rest of the benchmark works without it. Options pass through:
 `model` (an ERNet, a `sgjax train` run directory, or None for the planner's default checkpoint),
-`judge` (a second E-RNet that makes the robust choice, `Planner(judge=)`), `small_db` (the small
-primitive database, for tests and smoke runs), `db` (a PrimitiveDB), `config`
-(a PlannerConfig; its `use_refinement` is set by the method's name; by default the Stage-2 scene cloud
-is cropped to the workspace and voxelised exactly as the labelling pipeline did for training).
+`small_db` (the small primitive database, for tests and smoke runs), `db` (a PrimitiveDB), `preset`
+(a named configuration, `sgjax.presets`; the method's name becomes e.g. `supergrasp@paper` unless it is
+"default") or `config` (a PlannerConfig instead). `use_refinement` is set by the method's name; a preset's
+Stage-2 scene cloud is cropped to the workspace and voxelised exactly as the labelling pipeline did for
+training.
 
 The table: unless the config sets `support_plane`, each plan gives the planner the plane z = median z
 of the observation's table points (labels < 0), as the GPD baseline does, so Stage 1 drops grasps that
@@ -29,8 +30,9 @@ class PlannerMethod:
     """A `Method` over `sgjax.planner.Planner` (with or without the refinement branch)."""
 
     def __init__(self, name: str, use_refinement: bool, model=None, small_db: bool = False, db=None, config=None,
-                 judge=None):
-        from sgjax.planner import Planner, PlannerConfig
+                 preset: str = "default"):
+        from sgjax import presets
+        from sgjax.planner import Planner
 
         if db is None and small_db:
             from sgjax.stage1.database import DBConfig, load_database
@@ -39,10 +41,12 @@ class PlannerMethod:
         if config is None:  # the Stage-2 scene cloud exactly as in labelling (train/label.py)
             from envs.scene import stage2_scene_cloud
 
-            config = PlannerConfig(scene_cloud=stage2_scene_cloud())
+            config = presets.get(preset, scene_cloud=stage2_scene_cloud())
+        elif preset != "default":
+            raise ValueError("give a planner preset or a config, not both")
         self.config = dataclasses.replace(config, use_refinement=use_refinement)
-        self.name = name
-        self.planner = Planner(model=model, db=db, config=self.config, judge=judge)
+        self.name = name if preset == "default" else f"{name}@{preset}"
+        self.planner = Planner(model=model, db=db, config=self.config)
         # Stage 1 of an object whose cloud has not changed since the scene's last plan is not run again
         # (`sgjax.stage1.memory`); the harness starts each scene with `begin_scene`.
         self.memory = Stage1Memory()
@@ -80,10 +84,6 @@ class PlannerMethod:
             cands = plan.candidates[int(plan.scores["object"][row])]
             if cands.primitive_id[int(plan.scores["object_candidate"][row])] < 0:
                 info["fit_grasp"] = True
-            failures = plan.scores.get("failures")
-            if failures is not None:  # `PlannerConfig.failed_last`: objects a failed grasp was on, and the target's count
-                info["failed_objects"] = len(set(np.asarray(plan.scores["object"])[np.asarray(failures) > 0].tolist()))
-                info["target_failures"] = int(failures[row])
             robust = plan.scores.get("robust_score")
             if robust is not None and np.isfinite(robust[row]):
                 # `PlannerConfig.robust`: how many judged candidates evaluated higher than the one executed

@@ -7,7 +7,9 @@ is the one public door: a notebook imports from `sgjax` what it needs. The subpa
     sgjax.geometry   rotations, superquadrics, point clouds, the gripper, synthetic clouds
     sgjax.stage1     EMS fitting, primitives, the primitive database, matching, coarse filters, Stage1
     sgjax.stage2     PointNet++, E-RNet, PointNetGPD, region crops, checkpoints
+    sgjax.policy     the decision policy: pure functions over scored candidates
     sgjax.planner    Stage 1 -> Stage 2 -> one grasp (`Planner`, `plan`)
+    sgjax.presets    named planner configurations (`sgjax.presets.get("paper")`)
 """
 
 from sgjax.geometry.gripper import GripperSpec

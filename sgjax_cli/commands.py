@@ -12,6 +12,7 @@ import os
 import sys
 from typing import Sequence
 
+from sgjax.presets import names as preset_names
 from sgjax.utils.files import atomic_write
 
 # envs.trial.BACKENDS, spelled out here so that the CLI imports no simulator before a command runs.
@@ -171,8 +172,6 @@ def _cmd_train(args: argparse.Namespace) -> int:
     hand = {"hand_points": args.hand_points} if args.hand_points else {}
     if hand and args.network != "ernet":
         return _fail("--hand-points is an E-RNet input; the PointNetGPD baseline sees its closing region only")
-    if args.rank_weight and args.network != "ernet":
-        return _fail("--rank-weight is an E-RNet loss; the PointNetGPD baseline trains with its own")
     if args.synthetic:
         if len(args.data) > 1:
             return _fail("--synthetic writes to one --data directory")
@@ -193,8 +192,6 @@ def _cmd_train(args: argparse.Namespace) -> int:
             held_out_fraction=args.held_out,
             lr_decay_epochs=args.lr_decay_epochs,
             devices=args.devices,
-            rank_weight=args.rank_weight,
-            swap_fingers=args.swap_fingers,
             model={"paper": network.paper, "light": network.light, "tiny": network.tiny}[args.model](**hand),
         )
         result = run(args.data, args.out, config, progress=not args.quiet, init=args.init)  # one directory or several
@@ -302,48 +299,6 @@ def _cmd_label(args: argparse.Namespace) -> int:
     return 0
 
 
-def _cmd_label_finalists(args: argparse.Namespace) -> int:
-    from pathlib import Path
-
-    from eval.benchmark import scene_indices
-    from eval.counterfactual import replay_finalist_trials, scene_logs
-    from eval.methods import make_method
-    from train.finalists import sidecar_path, write_finalist_shard
-    from train.label import LabelConfig
-
-    held_out = LabelConfig().held_out_objects
-    totals = {"scenes": 0, "states": 0, "finalists": 0, "succeed": 0, "stopped": 0}
-    try:
-        scenes = set(scene_indices(args.scenes)) if args.scenes else None
-        method = make_method("supergrasp", model=args.model)
-        out = Path(args.out)
-        for folder, path, log, objects in scene_logs(args.logs, args.objects, scenes):
-            out.mkdir(parents=True, exist_ok=True)
-            shard = out / f"{log['setting']}-{folder.name}-{path.stem}.npz"
-            if Path(sidecar_path(shard)).exists():
-                continue  # done by an earlier run
-            states, reproduced = replay_finalist_trials(log, objects, method)
-            write_finalist_shard(shard, states, int(log["scene_seed"]), int(log["scene_index"]), held_out)
-            m = sum(len(s.pose) for s in states)
-            ok = sum(int(s.label[:, 0].sum()) for s in states)
-            totals["scenes"] += 1
-            totals["states"] += len(states)
-            totals["finalists"] += m
-            totals["succeed"] += ok
-            totals["stopped"] += not reproduced
-            if not args.quiet:
-                print(f"{folder.name}/{path.name}: {len(states)} states, {m} finalists, {ok} succeed"
-                      + ("" if reproduced else " (stopped: the plan differs from the log)"), flush=True)
-    except (ValueError, FileNotFoundError) as exc:
-        return _fail(str(exc))
-    except KeyboardInterrupt:
-        print(f"\ninterrupted: rerun the same command to continue; finished scenes in {args.out} are kept", file=sys.stderr)
-        return 130
-    print(f"label-finalists {args.out}: {totals['scenes']} scene(s) replayed now ({totals['stopped']} stopped early), "
-          f"{totals['states']} states, {totals['finalists']} finalists, {totals['succeed']} succeed")
-    return 0
-
-
 def _cmd_build_db(args: argparse.Namespace) -> int:
     from sgjax.stage1.database import (
         DBConfig,
@@ -430,10 +385,11 @@ def _cmd_plan(args: argparse.Namespace) -> int:
                 f"{args.mask}: the mask must be bool [N] (target) or int [N] (object labels) with N = {len(cloud)} "
                 f"(the cloud's points), got {mask.dtype} {mask.shape}"
             )
+        from sgjax import presets
         from sgjax.planner import Planner
 
         db = load_database_file(args.db) if args.db else load_database(DBConfig.small() if args.small_db else DBConfig())
-        planner = Planner(model=args.model, db=db, judge=args.judge)
+        planner = Planner(model=args.model, db=db, config=presets.get(args.preset))
         viewpoint = (0.0, 0.0, 0.0) if args.viewpoint is None else tuple(args.viewpoint)
         if mask.dtype == bool:
             plan = planner.plan_masked(cloud, mask, viewpoint, seed=args.seed)
@@ -480,11 +436,10 @@ def _cmd_declutter(args: argparse.Namespace) -> int:
     from eval.report import percent
 
     options = {"model": args.model, "small_db": args.small_db}
-    if args.judge:
-        options["judge"] = args.judge
+    method = args.method if args.preset == "default" else f"{args.method}@{args.preset}"
     try:
         result = run_benchmark(
-            args.method,
+            method,
             setting=args.setting,
             scenes=args.scenes,
             seed=args.seed,
@@ -589,8 +544,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--viewpoint", type=float, nargs=3, metavar=("X", "Y", "Z"), help="camera position (default: origin)")
     p.add_argument("--model", metavar="RUN_DIR", help="an E-RNet `sgjax train` run directory (default: the shipped model)")
-    p.add_argument("--judge", metavar="RUN_DIR",
-                   help="a second E-RNet run that makes the robust choice among the model's finalists (Planner(judge=))")
+    p.add_argument("--preset", default="default", choices=preset_names(),
+                   help="the planner's named configuration (sgjax.presets; default: today's SuperGrasp)")
     p.add_argument("--db", help="a primitive database file (default: the cached default database)")
     p.add_argument("--small-db", action="store_true", help="use the small database (built in seconds)")
     p.add_argument("--json", action="store_true", help="print the plan as JSON")
@@ -653,16 +608,6 @@ def build_parser() -> argparse.ArgumentParser:
         help="E-RNet also sees N points of the hand's swept volume (fingers, palm, the last 5 cm of the approach); "
         "0: the paper's input, the enlarged region only",
     )
-    p.add_argument(
-        "--rank-weight", type=float, default=0.0, metavar="W",
-        help="add W x a within-scene ranking loss (each success should outscore each failure of its scene; "
-        "batches are then drawn scene by scene); 0: the paper's loss (default). E-RNet only",
-    )
-    p.add_argument(
-        "--swap-fingers", action="store_true",
-        help="show each training sample as its twin with the fingers swapped (the grasp frame turned 180 degrees "
-        "about the approach axis: the same physical grasp) half of the time",
-    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--synthetic", type=int, default=0, metavar="N", help="first write N synthetic samples to --data")
     p.add_argument(
@@ -721,7 +666,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--per-source", default=None, metavar="SOURCE=N,...",
         help="grasps per target from each candidate source (default stage1=8,stage1_paper=8,gpd=8,perturbed=8; "
-        "also stage1_relabel: Stage 1 with relabelled matches appended; each executed with its 3 refinements)",
+        "each executed with its 3 refinements)",
     )
     p.add_argument(
         "--held-out-objects", default=None, metavar="NAME,...",
@@ -733,18 +678,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--threads", type=int, default=0, help="simulation threads (default: all cores; with --ray: per worker, default 1)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_label)
-    p = sub.add_parser(
-        "label-finalists",
-        help="label the planner's finalists on replayed benchmark states, for training a judge (resumable)",
-    )
-    p.add_argument("logs", nargs="+", metavar="LOG_DIR",
-                   help="SuperGrasp benchmark log folders (OUT/logs/supergrasp/<setting>/seed<k>) made by this planner")
-    p.add_argument("--out", required=True, help="directory of label shards (one per scene, source 'finalist')")
-    p.add_argument("--objects", metavar="DIR", help="a folder of meshes (or an object set name) instead of the logs'")
-    p.add_argument("--scenes", help="scene indices, e.g. 0-9 (default: every log)")
-    p.add_argument("--model", metavar="RUN_DIR", help="the E-RNet run the logs were made with (default: the shipped one)")
-    p.add_argument("--quiet", action="store_true", help="no line per scene")
-    p.set_defaults(func=_cmd_label_finalists)
     p = sub.add_parser(
         "declutter",
         help="decluttering benchmark in simulation (paper Table I): GSR, TSR, GA over N scenes; resumable",
@@ -766,9 +699,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="the method's network run directory: E-RNet (supergrasp*, gpd+s2) or PointNetGPD (*pointnetgpd)",
     )
     p.add_argument(
-        "--judge", metavar="RUN_DIR",
-        help="supergrasp*: a second E-RNet run that makes the robust choice among the model's finalists "
-             "(`Planner(judge=)`, e.g. a paper-size network)",
+        "--preset", default="default", choices=preset_names(),
+        help="supergrasp*: the planner's named configuration (sgjax.presets: default = today's SuperGrasp, "
+             "paper = the paper's plain one); logs and tables name it as METHOD@PRESET",
     )
     p.add_argument("--small-db", action="store_true", help="the small primitive database (Stage-1 methods; tests)")
     p.add_argument("--backend", default="cpu", help=BACKEND_HELP)

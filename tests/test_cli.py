@@ -127,21 +127,13 @@ def test_candidates_bad_input_exits_2(tmp_path, capsys):
         (["--per-source", "stage1"], "is not SOURCE=COUNT"),
         (["--per-source", "stage1=4,grasps=2"], "unknown candidate source 'grasps'"),
         (["--targets-per-scene", "0"], "targets_per_scene must be >= 1"),
-        (["--per-source", "finalist=4"], "sgjax label-finalists"),
+        (["--per-source", "stage1_relabel=4"], "stage1_relabel only names samples of directories labelled by earlier"),
     ],
 )
 def test_label_options_are_checked_before_any_work(tmp_path, capsys, options, message):
     assert main(["label", "--scenes", "1", "--out", str(tmp_path / "labels"), *options]) != 0
     assert message in capsys.readouterr().err
     assert not (tmp_path / "labels").exists()
-
-
-def test_label_finalists_needs_scene_logs(tmp_path, capsys):
-    """`sgjax label-finalists` on a folder without benchmark scene logs fails naming it, before any work."""
-    (tmp_path / "logs").mkdir()
-    assert main(["label-finalists", str(tmp_path / "logs"), "--out", str(tmp_path / "out")]) == 2
-    assert "no scene_*.json logs" in capsys.readouterr().err
-    assert not (tmp_path / "out").exists()
 
 
 def test_baselines_setup_arguments_and_bad_input(tmp_path, capsys):

@@ -6,7 +6,6 @@ from __future__ import annotations
 import dataclasses
 import importlib.util
 import json
-import os
 
 import numpy as np
 import pytest
@@ -232,7 +231,7 @@ def test_attempts_are_broken_down_by_how_chosen_score_and_tilt(tmp_path):
     stopped = metrics.stopped_at([a, b], 0.8)  # a keeps its first attempt, b none
     assert (stopped.attempts, stopped.successes, stopped.objects, stopped.gsr) == (1, 1, 5, 1.0)
     assert metrics.stopped_at([a, b], 0.99).attempts == 0 and metrics.stopped_at([a, b], 0.99).gsr is None
-    # Logs found at any depth; other JSON beside them (a finalist shard's sidecar) is not a scene log.
+    # Logs found at any depth; other JSON beside them (e.g. scene_007.states.json) is not a scene log.
     report.write_scene_log(tmp_path / "x" / "seed3" / "scene_007.json", a)
     (tmp_path / "x" / "seed3" / "scene_007.states.json").write_text("[]")
     assert report.logs_under(tmp_path) == [a] and report.logs_under(tmp_path / "none") == []
@@ -568,58 +567,6 @@ def test_every_finalist_is_simulated_from_the_logged_states(objects, small_db, r
     with pytest.raises(ValueError, match="robust"):
         replay_choices(run.log, objects, make_method("supergrasp", model=model, db=small_db,
                                                       config=dataclasses.replace(config, robust=None)), CONFIG)
-
-
-@pytest.mark.slow
-@pytest.mark.skipif(importlib.util.find_spec("sgjax.planner") is None, reason="sgjax.planner is not installed")
-def test_finalists_with_their_refinements_become_a_label_shard(objects, small_db, rigged, supergrasp_run, tmp_path):
-    """`replay_finalist_trials` executes every finalist and its refinements from the logged states; as a
-    label shard (`train.finalists`) they read back like labelled scenes, and the offline choice over them
-    finds the logged outcome of the executed grasp."""
-    from eval.counterfactual import replay_choices, replay_finalist_trials
-    from train import dataset
-    from train.finalists import finalist_choices, sidecar_path, state_seed, write_finalist_shard
-    from train.sources import source_index
-
-    method, run = supergrasp_run
-    logged = {a["attempt"]: a for a in run.log["attempts"]}
-    states, reproduced = replay_finalist_trials(run.log, objects, method, CONFIG)
-    choices, _ = replay_choices(run.log, objects, method, CONFIG)
-    assert reproduced and states and [s.attempt for s in states] == [c.attempt for c in choices]
-    for state, choice in zip(states, choices):
-        m = len(state.pose)
-        assert m >= 2 and state.outcome.shape == state.label.shape == (m, 4) and state.cloud.shape[1] == 3
-        chosen = np.flatnonzero(state.chosen)
-        assert len(chosen) == 1
-        # the executed finalist's first trial is the logged one; its label says success the same way
-        assert bool(state.label[chosen[0], 0]) == logged[state.attempt]["success"]
-        assert state.target[chosen[0]] == logged[state.attempt]["target"]
-        # the same finalists and outcomes as replay_choices' single trials
-        simulated = [f for f in choice.finalists if f.target is not None]
-        assert [f.success for f in simulated] == state.label[:, 0].tolist()
-        assert state.target_name[chosen[0]] == logged[state.attempt]["target_name"]
-    shard = write_finalist_shard(tmp_path / "scene.npz", states, int(run.log["scene_seed"]), 0, held_out=())
-    samples = dataset.read_shards(tmp_path)
-    n = sum(len(s.pose) for s in states)
-    assert len(samples["label"]) == n and (samples["source"] == source_index("finalist")).all()
-    # each state a scene of its own (a ranking loss compares one state's finalists)
-    np.testing.assert_array_equal(samples["scene_seed"], np.concatenate(
-        [np.full(len(s.pose), state_seed(int(run.log["scene_seed"]), s.attempt)) for s in states]))
-    assert len(np.unique(samples["scene_seed"])) == len(states)
-    np.testing.assert_array_equal(samples["label"], np.concatenate([s.label[:, 0] for s in states]))
-    np.testing.assert_array_equal(samples["refine_labels"], np.concatenate([s.label[:, 1:] for s in states]))
-    assert (samples["region_mask"].sum(axis=1) > 0).all()  # each crop found its object in its state's cloud
-    picks = finalist_choices(shard, np.concatenate([s.chosen for s in states]).astype(float))
-    assert [c.executed for c in picks] == [logged[s.attempt]["success"] for s in states]
-    assert [c.picked for c in picks] == [c.executed for c in picks]  # scores that favour the executed grasp pick it
-    assert [(c.any, c.all) for c in picks] == [(s.label[:, 0].any(), s.label[:, 0].all()) for s in states]
-    worst = finalist_choices(shard, -np.concatenate([s.label[:, 0] for s in states]).astype(float))
-    assert [c.picked for c in worst] == [c.all for c in picks]
-    assert finalist_choices(shard, -samples["label"].astype(float), dataset.read_label_shard(shard)[0]) == worst
-    with pytest.raises(ValueError, match="scores"):
-        finalist_choices(shard, np.zeros(n + 1))
-    # no state: only the sidecar, so a resumed run knows the scene is done
-    assert write_finalist_shard(tmp_path / "empty.npz", [], 1, 1) is None and os.path.exists(sidecar_path(tmp_path / "empty.npz"))
 
 
 @pytest.mark.slow

@@ -178,33 +178,6 @@ def test_losses_match_paper_equations():
     np.testing.assert_allclose(total, 2.0 * parts["eval"] + 0.5 * parts["refine"], rtol=1e-6)
 
 
-def test_ranking_loss_matches_pairs_brute_force():
-    """The within-scene ranking loss: softplus(-(s_i - s_j)) over every (success i, failure j) pair of one
-    scene, weighted by w_i w_j, against a loop over all pairs; no pair across scenes; 0 without pairs."""
-    rng = np.random.default_rng(1)
-    b = 14
-    logits = rng.normal(size=(b, 2)).astype(np.float32)
-    labels, groups = rng.integers(0, 2, b), rng.integers(0, 3, b)
-    w = (rng.random(b) > 0.2).astype(np.float32)
-    s = logits[:, 1] - logits[:, 0]
-    num = den = 0.0
-    for i in range(b):
-        for j in range(b):
-            if groups[i] == groups[j] and labels[i] == 1 and labels[j] == 0:
-                num += w[i] * w[j] * np.log1p(np.exp(-(s[i] - s[j])))
-                den += w[i] * w[j]
-    assert den > 0
-    np.testing.assert_allclose(ernet.ranking_loss(logits, labels, groups, w), num / den, rtol=1e-5)
-    # Every sample its own scene: no pair, so 0 (not NaN) whatever the scores.
-    assert float(ernet.ranking_loss(logits, labels, np.arange(b), w)) == 0.0
-    # A scene whose success already outscores its failure by a wide margin costs almost nothing.
-    wide = np.array([[0.0, 10.0], [10.0, 0.0]], np.float32)
-    assert float(ernet.ranking_loss(wide, np.array([1, 0]), np.array([0, 0]))) < 1e-8
-    # The gradient raises the success's score and lowers the failure's.
-    g = jax.grad(lambda z: ernet.ranking_loss(z, np.array([1, 0]), np.array([0, 0])))(jnp.zeros((2, 2)))
-    assert g[0, 1] < 0 < g[1, 1]
-
-
 def test_anchor_feature_masked_max():
     f = jnp.asarray([[[1.0, -2.0], [3.0, -1.0], [9.0, 9.0]], [[1.0, 1.0], [2.0, 2.0], [3.0, 3.0]]])
     mask = jnp.asarray([[True, True, False], [False, False, False]])

@@ -96,8 +96,6 @@ def test_the_planner_offers_them_in_the_plans_its_config_names(small_db):
     assert PlannerConfig().stage1.fit_grasps is None  # Stage 1's own default: the paper's candidates
     assert planner.stage1.config.fit_grasps == FitGraspConfig()  # the planner's: in both plans
     assert planner._fallback_stage().config.fit_grasps == FitGraspConfig()
-    second = PlannerConfig(fit_grasps=FitGraspConfig(first_plan=False))
-    assert second.first_stage1.fit_grasps is None and second.first_stage1 == second.stage1
     assert PlannerConfig(fit_grasps=None).first_stage1.fit_grasps is None
     planner.config = PlannerConfig(fallback_filter=None)  # the paper's planner: no second plan at all
     assert planner._fallback_stage() is None

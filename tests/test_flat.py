@@ -3,8 +3,7 @@
 
 Each object of the "flat" set rests alone on its largest face, seen by the benchmark camera; Stage 1 as
 the planner's second plan runs it (its looser filter, the fit's grasps) plans on the view, and every fit
-grasp it keeps is executed in the benchmark's trial (lift, reorient, 1 N). `benchmarks/tapered_objects.py --objects flat` measures
-the planner's choices at full size.
+grasp it keeps is executed in the benchmark's trial (lift, reorient, 1 N).
 """
 
 from __future__ import annotations

@@ -12,7 +12,6 @@ import pytest
 from sgjax.geometry.gripper import (
     GripperSpec,
     check_width,
-    closing_box,
     closing_region,
     collides_with_points,
     deepened_pose,
@@ -21,14 +20,11 @@ from sgjax.geometry.gripper import (
     hand_boxes,
     hand_samples,
     in_box,
-    lever_arm,
     near_grasps,
     points_in_closing_region,
     points_in_enlarged_region,
     refined_pose,
     refined_poses,
-    rotated_about_approach,
-    swap_fingers_local,
     to_gripper_frame,
     to_world,
     width_in_range,
@@ -428,61 +424,3 @@ def test_hand_samples_fill_the_swept_hand_boxes(sweep):
                 assert gaps.max() <= step + 1e-6
     with pytest.raises(ValueError, match="step"):
         hand_samples(spec, 0.05, sweep, 0.0)
-
-
-def test_hand_samples_with_the_closing_region():
-    """closing=True adds a grid over the closing region (between the fingers, as wide as the opening) to
-    the hand's samples: the hand's own samples come first and unchanged, the added ones fill the closing
-    box corner to corner with spacing <= step, and the count does not depend on the width."""
-    spec, step = GripperSpec(), 0.006
-    widths = np.array([0.01, 0.05, spec.max_opening], np.float32)
-    hand = np.asarray(hand_samples(spec, widths, 0.02, step))
-    both = np.asarray(hand_samples(spec, widths, 0.02, step, closing=True))
-    assert both.shape[1] > hand.shape[1]
-    np.testing.assert_array_equal(both[:, : hand.shape[1]], hand)
-    for w, pts in zip(widths, both[:, hand.shape[1]:]):
-        lo, hi = closing_box(spec, float(w))
-        assert np.all(pts >= np.add(lo, -1e-6)) and np.all(pts <= np.add(hi, 1e-6))
-        for corner in np.array(np.meshgrid(*zip(lo, hi), indexing="ij")).reshape(3, -1).T:
-            assert np.min(np.linalg.norm(pts - corner, axis=1)) < 1e-6
-        for axis in range(3):
-            assert np.diff(np.unique(np.round(pts[:, axis], 6))).max() <= step + 1e-6
-
-
-def test_swap_fingers_is_the_grasp_turned_about_its_approach_axis():
-    """swap_fingers_local gives the gripper-frame points of the same grasp turned 180 deg about z (the
-    fingers swapped), is its own inverse, leaves every region of the hand as it is (a point is in the
-    closing, enlarged or swept-hand region iff its twin is), and maps each refinement variant's pose to
-    the same variant of the turned grasp."""
-    from sgjax.stage2.crops import in_closing_region_local, in_enlarged_region_local, in_swept_hand_local
-
-    pose = random_pose(3)
-    points = jax.random.uniform(jax.random.PRNGKey(4), (1, 4000, 3), minval=-0.12, maxval=0.12) + pose[:3, 3]
-    turned = rotated_about_approach(pose, jnp.pi)
-    local = to_gripper_frame(points, pose)
-    np.testing.assert_allclose(swap_fingers_local(local), to_gripper_frame(points, turned), atol=1e-6)
-    np.testing.assert_array_equal(swap_fingers_local(swap_fingers_local(local)), local)
-    width = jnp.array([0.06])
-    for inside in (lambda q: in_closing_region_local(q, width, SPEC), lambda q: in_enlarged_region_local(q, width, SPEC),
-                   lambda q: in_swept_hand_local(q, width, SPEC, 0.05, 0.003)):
-        assert np.asarray(inside(local)).any()
-        np.testing.assert_array_equal(inside(swap_fingers_local(local)), inside(local))
-    for variant in range(SPEC.num_refinements):
-        np.testing.assert_allclose(rotated_about_approach(refined_pose(pose, variant, SPEC), jnp.pi),
-                                   refined_pose(turned, variant, SPEC), atol=1e-6)
-
-
-def test_lever_arm_is_the_offset_along_the_finger_width_from_the_closing_centre():
-    """A point placed at known gripper-frame offsets from the closing region's centre: only the y offset
-    counts (x lies along the closing line, z along the approach), whatever the pose; jnp and np agree."""
-    spec = GripperSpec()
-    rng = np.random.default_rng(3)
-    poses = np.stack([np.asarray(pose_matrix(random_rotation(jax.random.key(k)), jnp.asarray(rng.normal(0, 0.1, 3), jnp.float32))) for k in range(8)]).astype(np.float64)
-    offsets = rng.uniform(-0.05, 0.05, (8, 3))
-    centre = np.array([0.0, 0.0, 0.5 * spec.finger_length])
-    points = np.einsum("mij,mj->mi", poses[:, :3, :3], centre + offsets) + poses[:, :3, 3]
-    np.testing.assert_allclose(lever_arm(poses, points, spec, xp=np), np.abs(offsets[:, 1]), atol=1e-7)
-    np.testing.assert_allclose(np.asarray(lever_arm(poses.astype(np.float32), points.astype(np.float32), spec)),
-                               np.abs(offsets[:, 1]), atol=1e-6)
-    with pytest.raises(ValueError, match=r"shapes \[M, 4, 4\] and \[M, 3\]"):
-        lever_arm(poses, points[:3], spec, xp=np)

@@ -92,39 +92,6 @@ def test_paper_filters_drop_only_the_extra_judgement():
     assert paper.filter.max_normal_angle_deg == CONFIG.stage1.filter.max_normal_angle_deg
 
 
-def test_relabel_source_keeps_only_the_relabelled_matches_grasps(setup):
-    """stage1_relabel: Stage 1 with relabelled matches appended, only the grasps of those (rank >= K2)."""
-    from envs import camera as camera_lib
-    from envs import scene as scene_lib
-    from train.label import scene_candidates
-
-    objects, labellers = setup
-    config = dataclasses.replace(CONFIG, per_source=(("stage1", 2), ("stage1_relabel", 4)), relabel_extra=5)
-    both = Labellers.make(config, labellers.stage1)
-    assert both.stage1_relabel.config.match.relabel_extra == 5 and labellers.stage1_relabel is None
-    seed = scene_seed(config.seed, 0)
-    scene = scene_lib.make_scene(list(objects), config.n_objects, seed, config.scene, config.spec)
-    obs = camera_lib.observe(scene, config.camera, seed=seed)
-    visible = np.flatnonzero(np.bincount(obs.point_labels[obs.point_labels >= 0], minlength=scene.n_objects) >= 50)
-    _, found = scene_candidates(obs, visible, visible, both, config, seed)
-    k2 = config.stage1.match.K2
-    direct = both.stage1_relabel.batch(
-        [obs.object_cloud(int(k)) for k in visible] + [obs.object_cloud(int(visible[0]))] * (config.n_objects - len(visible)),
-        [obs.points] * config.n_objects, np.tile(np.asarray(config.camera.position, np.float32), (config.n_objects, 1)),
-        seed % (2**31), scene_lib.TABLE_PLANE,
-    )
-    total = 0
-    for k, c in zip(visible, direct):
-        poses, widths = found["stage1_relabel"][int(k)]
-        extra = c.match_rank >= k2
-        np.testing.assert_allclose(poses, c.poses[extra])
-        np.testing.assert_allclose(widths, c.widths[extra])
-        total += int(extra.sum())
-    assert total > 0  # the relabelled matches reach some grasp on these objects
-    with pytest.raises(ValueError, match="relabel_extra"):
-        LabelConfig(relabel_extra=0)
-
-
 @pytest.fixture(scope="module")
 def whole(setup, tmp_path_factory):
     """Scenes 0 and 1 labelled in one run -> (directory, summary)."""
@@ -220,6 +187,9 @@ def test_bad_arguments(setup, tmp_path):
         LabelConfig(targets_per_scene=0)
     with pytest.raises(ValueError, match="unknown candidate source 'grasps'"):
         LabelConfig(per_source=(("grasps", 4),))
+    for retired in ("stage1_relabel", "finalist"):  # codes of older directories, no longer drawn
+        with pytest.raises(ValueError, match=f"{retired} only names samples of directories labelled by earlier"):
+            LabelConfig(per_source=(("stage1", 4), (retired, 4)))
     with pytest.raises(ValueError, match="not in object set 'tiny'"):
         label(tmp_path, 1, dataclasses.replace(CONFIG, held_out_objects=("ycb/058_golf_ball",)), objects=objects, stage1=stage1.stage1, progress=False)
     with pytest.raises(dataset.DatasetError, match="no labelled shards"):
@@ -279,119 +249,20 @@ def test_train_and_judge_on_labelled_scenes(whole, tmp_path, capsys):
 
 
 def test_a_labelled_directory_replays_to_its_recorded_outcomes(setup, whole):
+    """A labelled directory's config reads back, its scenes rebuild from their index alone
+    (`labelled_scene`), and the simulator replays every recorded grasp to its recorded outcome."""
+    from envs.trial import run_trials
     from train.label import labelled_scene, read_config
-    from train.repeatability import replay_directory, table
 
     objects, _ = setup
     assert read_config(whole[0]) == CONFIG  # the config back from label_config.json, nested ones included
     scene, _ = labelled_scene(0, objects, CONFIG)
     stored = dataset.read_label_shard(whole[0] / "scenes-000000-000002.npz")[0]
     stored = {k: v[stored["scene_index"] == 0] for k, v in stored.items()}
-    assert sorted(stored["object_name"]) and set(stored["object_name"]) <= {a.name for a in scene.assets}
-    # The simulator replays every recorded grasp to its outcome; moved grasps are real trials too.
-    out = replay_directory(str(whole[0]), (0, 1), tuple(sources.SOURCES[:2]), moves=1, shift=0.002, turn_deg=2.0, progress=False)
-    valid = stored["valid"] & (stored["source"] < 2)
-    assert len(out["label"]) == valid.sum() > 0
-    np.testing.assert_array_equal(out["replayed"], out["outcome"])
-    np.testing.assert_array_equal(out["outcome"], stored["outcome"][valid])
-    assert out["moved"].shape == (valid.sum(), 1) and (out["moved"] >= 0).all()
-    assert "same pose reproduces" in table(out, 1, 0.002, 2.0)
-    with pytest.raises(ValueError, match="moves"):
-        replay_directory(str(whole[0]), moves=-1)
-
-
-def test_refinements_rescored_as_the_planner_scores_them(whole):
-    """`train.refine_rescore`: each refinement's evaluation, cropped from the stored scene cloud at the
-    refined pose, is what the planner's Stage-2 call (`ernet.score` on the scene cloud) gives that pose."""
-    from flax import nnx
-
-    from sgjax.geometry.gripper import refined_pose
-    from sgjax.planner import rescored_refinement
-    from sgjax.stage2 import ernet
-    from train.refine_rescore import rescore_directory, table
-
-    out = rescore_directory(str(whole[0]), progress=False)
-    n, k = out["refine_prob"].shape
-    assert n > 0 and k == CONFIG.spec.num_refinements and out["judged"].shape == (n, k)
-    assert ((out["judged"] >= 0) & (out["judged"] <= 1)).all() and out["judged"].max() > 0
-    stored, clouds = dataset.read_label_shard(whole[0] / "scenes-000000-000002.npz")
-    stored = {key: v[stored["valid"]] for key, v in stored.items()}
-    model = ernet.load_default_model()
-    graphdef, state = nnx.split(model)
-    first = stored["cloud_row"] == 0
-    rows = np.flatnonzero(first)
-    poses = np.asarray(refined_pose(stored["pose"][rows].astype(np.float32), 1, CONFIG.spec))
-    live = ernet.score(graphdef, state, clouds[0], poses, stored["width"][rows], spec=CONFIG.spec)
-    mine = out["judged"][: len(rows), 1]  # the first shard's first scene comes first, in stored order
-    np.testing.assert_array_equal(out["scene_seed"][: len(rows)], stored["scene_seed"][rows])
-    # Both crop the same region; only which of its points are kept (more than the network takes) differs.
-    diff = np.abs(mine - np.where(live.valid, live.eval_prob, 0.0))
-    print("DIFF", diff.max(), diff.mean())
-    assert diff.max() < 0.15 and diff.mean() < 0.03, diff
-    text = table(out)
-    assert "geometric mean (refine_rescore)" in text and "| all |" in text
-    np.testing.assert_allclose(rescored_refinement([0.81, 0.0], [0.64, 1.0]), [0.72, 0.0], atol=1e-6)
-
-
-def test_lever_arms_of_labelled_grasps(setup, whole):
-    """`train.lever`: each scored sample's lever arm is measured to the visible centroid of the object it
-    grasps (checked here by another route: the object with the most observed points in the closing
-    region), and with weight 0 the planner's pick is E-RNet's top grasp as `sgjax score-data` counts it."""
-    from envs import camera as camera_lib
-    from sgjax.geometry import pointcloud
-    from sgjax.geometry.gripper import closing_centre, lever_arm, points_in_closing_region
-    from sgjax.stage1 import ems
-    from train import score_data
-    from train.judgement import top_success
-    from train.label import labelled_scene
-    from train.lever import fit_table, lever_directory, planner_picks, table
-
-    objects, _ = setup
-    out = lever_directory(str(whole[0]), progress=False)
-    n = len(out["label"])
-    assert n > 0 and all(len(v) == n for v in out.values())
-    assert np.isfinite(out["lever"]).all() and (out["lever"] >= 0).all()
-    scored = score_data.score_directory(whole[0], resamples=0)
-    assert scored["samples"] == n
-    s1 = out["source"] == sources.source_index("stage1")
-    stage1 = {k: v[s1] for k, v in out.items()}
-    assert stage1["label"][planner_picks(stage1, 0.0)].mean() == pytest.approx(scored["top1_success"])
-    assert top_success(stage1["eval_prob"], stage1["label"], stage1["scene_seed"]) == pytest.approx(scored["top1_success"])
-    # A huge weight: the pick is the passing sample on the top sample's object with the shortest arm.
-    for pick in planner_picks(stage1, 1e6):
-        scene = stage1["scene_seed"] == stage1["scene_seed"][pick]
-        top = np.flatnonzero(scene)[np.argmax(stage1["eval_prob"][scene])]
-        if stage1["eval_prob"][top] > 0.7:
-            rivals = scene & (stage1["target"] == stage1["target"][top]) & (stage1["eval_prob"] > 0.7)
-            assert stage1["target"][pick] == stage1["target"][top] and stage1["lever"][pick] == stage1["lever"][rivals].min()
-    # Scene 0 again: the object whose points fill each sample's closing region, its visible centroid.
-    samples = dataset.read_shards(whole[0], "swept")
-    first = np.flatnonzero(samples["valid"] & (samples["scene_seed"] == scene_seed(CONFIG.seed, 0)))
-    scene, _ = labelled_scene(0, objects, CONFIG)
-    obs = camera_lib.observe(scene, CONFIG.camera, seed=scene_seed(CONFIG.seed, 0))
-    checked = 0
-    for row in first:
-        inside = np.asarray(points_in_closing_region(obs.points.astype(np.float32), samples["pose"][row],
-                                                     samples["width"][row], CONFIG.spec))
-        held = obs.point_labels[inside & (obs.point_labels >= 0)]
-        k = np.bincount(held).argmax() if len(held) else -1
-        if row not in out["row"] or k < 0 or scene.assets[k].name != samples["object_name"][row]:
-            continue  # not scored, or its closing region mostly holds another object
-        centroid = obs.points[obs.point_labels == k].mean(0)
-        expected = lever_arm(samples["pose"][row][None].astype(np.float64), centroid[None], CONFIG.spec, xp=np)[0]
-        assert out["lever"][out["row"] == row][0] == pytest.approx(expected, abs=1e-6)
-        # The fitted centre: that object's visible points fitted alone, as Stage 1 fits them.
-        cloud = pointcloud.downsample(obs.points[obs.point_labels == k], CONFIG.stage1.max_object_points, 0)
-        batch, mask = pointcloud.pad_clouds([cloud], n_points=CONFIG.stage1.max_object_points)
-        fit = ems.fit_superquadrics(batch, mask, CONFIG.stage1.ems, np.asarray(CONFIG.camera.position, np.float32))
-        pose = samples["pose"][row].astype(np.float64)
-        offset = pose[:3, :3].T @ (np.asarray(fit.translation[0], np.float64) - closing_centre(pose[None], CONFIG.spec, xp=np)[0])
-        np.testing.assert_allclose(out["fit_offset"][out["row"] == row][0], offset, atol=2e-4)
-        assert np.linalg.norm(np.asarray(fit.translation[0]) - centroid) < 0.05  # near what the camera saw
-        checked += 1
-    assert checked > 0
-    printed = table(out, weights=(0.0, 2.0))
-    assert "| 0 |" in printed and "| 2 |" in printed and "lever arm (cm)" in printed
-    # Weight 0 of the fit table is E-RNet's top grasp too.
-    fitted = fit_table(out, weights=(0.0,))
-    assert f"| 0 | {scored['top1_success']:.3f} |" in fitted and "fit offset x (closing)" in fitted
+    names = [a.name for a in scene.assets]
+    assert sorted(stored["object_name"]) and set(stored["object_name"]) <= set(names)
+    rows = np.flatnonzero(stored["valid"] & (stored["source"] < 2))  # stage1 and stage1_paper
+    assert len(rows) > 0
+    targets = np.array([names.index(str(n)) for n in stored["object_name"][rows]])
+    replayed = run_trials(scene, targets, stored["pose"][rows].astype(np.float64), stored["width"][rows], config=CONFIG.trial)
+    np.testing.assert_array_equal(replayed.outcome, stored["outcome"][rows])

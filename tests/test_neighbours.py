@@ -83,24 +83,6 @@ def test_margin_and_own_fit_on_a_constructed_contact():
     assert not meets(-0.005, 0.002, owner=0)
 
 
-def test_closing_region_meets_a_neighbour_between_the_fingers():
-    """A small sphere between the open fingers, clear of both (a neighbour hidden under or behind the
-    target): the fingers and palm miss it, the hand with its closing region (what the closing fingers
-    sweep) meets it; moved out past a finger's outer face, neither does."""
-    width, pose = 0.07, np.eye(4, dtype=np.float32)[None]
-
-    def meets(centre, closing):
-        sphere = Superquadric(np.full((1, 3), 0.008, np.float32), np.ones((1, 2), np.float32),
-                              np.eye(3, dtype=np.float32)[None], np.asarray([centre], np.float32))
-        return bool(fit_collisions(pose, np.array([width], np.float32), np.array([-1], np.int32), sphere,
-                                   np.array([True]), SPEC, 0.002, SWEEP, STEP, closing=closing)[0])
-
-    between = (0.02, 0.0, 0.03)  # 7 mm from the right finger's inner face, 2 cm behind the fingertips
-    assert not meets(between, False) and meets(between, True)
-    outside = (width / 2 + SPEC.finger_thickness + 0.02, 0.0, 0.03)
-    assert not meets(outside, False) and not meets(outside, True)
-
-
 def fit_result(sq: Superquadric, valid=True) -> FitResult:
     one = lambda v: np.float32(v)
     return FitResult(np.asarray(sq.scale), np.asarray(sq.epsilon), np.asarray(sq.rotation), np.asarray(sq.translation),

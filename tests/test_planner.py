@@ -12,12 +12,13 @@ import numpy as np
 import pytest
 from flax import nnx
 
-from sgjax import planner as planner_mod
+from sgjax import planner as planner_mod, policy
 from sgjax.geometry import gripper as gripper_mod, synthetic
 from sgjax.stage2 import checkpoint, ernet
 from sgjax.stage2.ernet import ERNet, ERNetConfig
-from sgjax.geometry.gripper import GripperSpec, lever_arm, near_grasps, refined_pose
-from sgjax.planner import Planner, PlannerConfig, decide, select_grasp
+from sgjax.geometry.gripper import GripperSpec, near_grasps, refined_pose
+from sgjax.planner import Planner, PlannerConfig
+from sgjax.policy import decide, select_grasp
 from sgjax.geometry.rotations import so3_exp
 from sgjax.geometry.superquadric import Superquadric
 
@@ -200,11 +201,11 @@ def test_stage2_cloud_reproduces_the_plans_scores(planner, scene, first_plan):
 
 
 def test_more_candidates_than_stage2_takes_keeps_each_objects_best():
-    obj, row = planner_mod.stage2_subset([5, 1, 3], 6)  # round-robin in match order
+    obj, row = policy.stage2_subset([5, 1, 3], 6)  # round-robin in match order
     assert list(zip(obj.tolist(), row.tolist())) == [(0, 0), (0, 1), (0, 2), (1, 0), (2, 0), (2, 1)]
-    obj, row = planner_mod.stage2_subset([2, 0, 1], 10)
+    obj, row = policy.stage2_subset([2, 0, 1], 10)
     assert obj.tolist() == [0, 0, 2] and row.tolist() == [0, 1, 0]
-    assert len(planner_mod.stage2_subset([], 4)[0]) == 0
+    assert len(policy.stage2_subset([], 4)[0]) == 0
 
 
 def test_deterministic_and_never_recompiles(planner, scene, first_plan):
@@ -454,19 +455,6 @@ def test_fallback_filter_plans_again_only_when_nothing_was_found(small_db, scene
     assert none.kind is None and not none.fallback
     assert none.reason.startswith("no candidates: ") and "; with the fallback filter: no candidates: " in none.reason
     assert "fewer than 5000 points between the fingers" in none.reason
-    # fallback_match: the second plan also matches the fit's relabelled axes (its own Stage 1, the
-    # paper's K2 matches first, the relabelled ones after them); the first plan's matching is untouched.
-    from sgjax.stage1.matching import MatchConfig
-
-    relabel = MatchConfig(relabel_extra=5)
-    wider = Planner(strong, small_db, dataclasses.replace(CONFIG, stage1=starved, fallback_filter=FilterConfig(), fallback_match=relabel))
-    plan = wider.plan(*scene, viewpoint=CAMERA)
-    assert plan.ok and plan.fallback and wider.stage1.config.match == CONFIG.stage1.match
-    assert wider._fallback_stage().config.match == relabel and wider._fallback_stage().config.filter == FilterConfig()
-    ranks = np.concatenate([c.match_rank for c in plan.candidates])
-    assert plan.n_candidates > plain.n_candidates and (ranks >= relabel.K2).any() and (ranks < relabel.K2).any()
-    with pytest.raises(ValueError, match="fallback_match .* needs a fallback_filter"):
-        dataclasses.replace(CONFIG, fallback_filter=None, fallback_match=relabel)
 
 
 @pytest.mark.parametrize(
@@ -504,18 +492,6 @@ def test_missing_default_model_says_how_to_make_one(tmp_path, monkeypatch):
     monkeypatch.setattr(checkpoint, "ERNET_DEFAULT_DIR", tmp_path / "ernet_default")
     with pytest.raises(FileNotFoundError, match="ernet_default.*sgjax train --data DIR --out RUN_DIR.*--model RUN_DIR"):
         ernet.load_default_model()
-
-
-def test_shipped_paper_judge_is_the_paper_size_network(tmp_path, monkeypatch):
-    """`as_judge("paper")`: the shipped paper-size E-RNet (960 / 345 points, FPS, the swept input the
-    planner crops for its default model); None stays no judge; a missing checkpoint names its path."""
-    judge = ernet.as_judge(ernet.PAPER_JUDGE)
-    paper = ernet.ERNetConfig.paper(hand_points=judge.config.hand_points)
-    assert judge.config == paper and judge.config.hand_points == ernet.load_default_model().config.hand_points > 0
-    assert ernet.as_judge(None) is None
-    monkeypatch.setattr(checkpoint, "ERNET_PAPER_DIR", tmp_path / "ernet_paper")
-    with pytest.raises(FileNotFoundError, match="ernet_paper.*sgjax train --model paper"):
-        ernet.load_paper_model()
 
 
 # ---------------------------------------------------------------------------------------------
@@ -563,9 +539,9 @@ def test_cli_plan(tmp_path, capsys, monkeypatch, small_db):
     assert main(["plan", *base, "--mask", str(tmp_path / "mask.npy")]) == 0
     out = capsys.readouterr().out
     assert "evaluated grasp" in out and "stage 1" in out
-    # A judge run that does not exist is named, not a crash deep inside the planner.
-    assert main(["plan", *base, "--mask", str(tmp_path / "labels.npy"), "--judge", str(tmp_path / "no_run")]) == 2
-    assert "no_run" in capsys.readouterr().err
+    with pytest.raises(SystemExit):  # argparse names the known presets
+        main(["plan", *base, "--mask", str(tmp_path / "mask.npy"), "--preset", "nope"])
+    assert "invalid choice: 'nope'" in capsys.readouterr().err
 
     np.save(tmp_path / "short.npy", labels[:-3])
     assert main(["plan", *base, "--mask", str(tmp_path / "short.npy")]) == 2
@@ -617,10 +593,9 @@ def test_candidates_meeting_a_neighbours_fit_are_removed(planner):
 
 
 def test_second_plan_prefers_candidates_clear_of_the_neighbours_fits(small_db):
-    """`NeighbourFitConfig(in_fallback="prefer")`: the second plan (the first finds nothing here) plans with
-    the candidates whose hand meets no other object's fit, exactly those, when they give a grasp; when the
-    test removes them all (a fit grown by 30 cm), it plans with every candidate, where `in_fallback=True`
-    finds nothing."""
+    """The second plan (the first finds nothing here) plans with the candidates whose hand meets no other
+    object's fit, exactly those, when they give a grasp; when the test removes them all (a fit grown by
+    30 cm), it plans with every candidate, where the first plan, which removes them, finds nothing."""
     from sgjax.stage1 import neighbours
     from sgjax.stage1.filters import FilterConfig
     from sgjax.stage1.neighbours import NeighbourFitConfig
@@ -633,7 +608,7 @@ def test_second_plan_prefers_candidates_clear_of_the_neighbours_fits(small_db):
     def plan(fit_config):
         return Planner(strong, small_db, dataclasses.replace(second, neighbour_fits=fit_config)).plan(points, labels, viewpoint=CAMERA)
 
-    prefer, everything = plan(NeighbourFitConfig(in_fallback="prefer")), plan(None)
+    prefer, everything = plan(NeighbourFitConfig()), plan(None)
     assert prefer.ok and prefer.fallback and everything.ok
     fit_cfg = NeighbourFitConfig()
     fits, mask, pairs = neighbours.obstacle_fits(everything.candidates, [tall, low], fit_cfg)
@@ -644,60 +619,13 @@ def test_second_plan_prefers_candidates_clear_of_the_neighbours_fits(small_db):
         np.testing.assert_array_equal(kept.poses, whole.poses[~hits])
         removed += hits.sum()
     assert removed > 0 and prefer.n_candidates == everything.n_candidates - removed
-    # The default is the preference; in_fallback=False (the default before 2026-12-05) plans with all.
-    default, first_only = plan(NeighbourFitConfig()), plan(NeighbourFitConfig(in_fallback=False))
-    assert default.n_candidates == prefer.n_candidates and first_only.n_candidates == everything.n_candidates
-    np.testing.assert_array_equal(default.pose, prefer.pose)
 
-    blocking = dict(margin=0.3, max_overlap=1.0)  # every hand meets the other object's fit
-    strict = plan(NeighbourFitConfig(in_fallback=True, **blocking))
+    blocking = NeighbourFitConfig(margin=0.3, max_overlap=1.0)  # every hand meets the other object's fit
+    strict = Planner(strong, small_db, dataclasses.replace(CONFIG, neighbour_fits=blocking)).plan(points, labels, viewpoint=CAMERA)
     assert not strict.ok and "meet a neighbour's fitted superquadric" in strict.reason
-    rescued = plan(NeighbourFitConfig(in_fallback="prefer", **blocking))
+    rescued = plan(blocking)
     assert rescued.ok and rescued.fallback and rescued.n_candidates == everything.n_candidates
     np.testing.assert_array_equal(rescued.pose, everything.pose)
-    with pytest.raises(ValueError, match="in_fallback"):
-        NeighbourFitConfig(in_fallback="sometimes")
-
-
-def test_lever_weight_prefers_the_passing_grasp_nearest_its_objects_centroid(small_db, scene):
-    """Heads that ignore their input pass every valid candidate with the same score: without the lever
-    weight the first valid one is executed, with it the one on the same object whose closing line runs
-    nearest the object's visible centroid along the finger width (`gripper.lever_arm`); its score stays
-    its eval_prob."""
-    model = rigged([0.0, 5.0], [-5.0, -5.0, -5.0])
-    plain = Planner(model, small_db, CONFIG).plan(*scene, viewpoint=CAMERA)
-    levered = Planner(model, small_db, dataclasses.replace(CONFIG, lever_weight=2.0)).plan(*scene, viewpoint=CAMERA)
-    s = plain.scores
-    poses = np.stack([plain.candidates[o].poses[r] for o, r in zip(s["object"], s["object_candidate"])])
-    points, labels = scene
-    centroids = np.stack([points[labels == t].mean(0) for t in s["target"]])
-    first_valid = int(np.argmax(s["valid"]))
-    same = s["valid"] & (s["object"] == s["object"][first_valid])
-    arms = np.where(same, lever_arm(poses.astype(np.float64), centroids, SPEC, xp=np), np.inf)
-    assert plain.candidate_index == first_valid and arms[first_valid] > arms.min() + 1e-3  # a choice to change
-    # The shortest arm on that object (a grasp and its jaw-flipped twin can tie to float precision).
-    assert levered.kind == "evaluated" and arms[levered.candidate_index] == pytest.approx(arms.min(), abs=1e-7)
-    assert levered.score == pytest.approx(plain.score)
-    np.testing.assert_array_equal(levered.pose, poses[levered.candidate_index])
-
-
-def test_prefer_short_lever_never_takes_a_candidate_that_does_not_pass():
-    """Only passing candidates on the chosen candidate's object compete (here the chosen one and the third;
-    the second does not pass, the fourth is another object's)."""
-    poses = np.tile(np.eye(4), (3, 1, 1))
-    poses[:, 1, 3] = [0.04, 0.0, 0.02]  # closing lines 4, 0 and 2 cm from the centroid along y
-    scores = {"eval_prob": np.array([0.95, 0.6, 0.9, 0.93]), "valid": np.array([True, True, True, True]),
-              "object": np.array([0, 0, 0, 1])}
-    poses = np.concatenate([poses, np.eye(4)[None]])  # another object's, 0.93 - 0 would rank first
-    choice = {"index": np.int32(0), "kind": np.int32(1), "variant": np.int32(-1), "score": np.float32(0.95), "pose": None}
-    config = dataclasses.replace(CONFIG, lever_weight=4.0)
-    out = planner_mod.prefer_short_lever(choice, scores, poses, np.zeros((4, 3)), config)
-    assert int(out["index"]) == 2 and out["score"] == pytest.approx(0.9)  # 0.9 - 0.08 > 0.95 - 0.16; 0.6 fails
-    light = planner_mod.prefer_short_lever(choice, scores, poses, np.zeros((4, 3)), dataclasses.replace(CONFIG, lever_weight=0.5))
-    assert int(light["index"]) == 0
-    for bad in (-1.0, float("nan")):
-        with pytest.raises(ValueError, match="lever_weight must be a finite number >= 0"):
-            dataclasses.replace(CONFIG, lever_weight=bad)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -719,87 +647,6 @@ def test_perturbed_poses_move_and_turn_the_hand_in_its_own_frame():
         assert np.degrees(np.arctan2(out[k, :3, 0] @ y, out[k, :3, 0] @ rotation[:, 0])) == pytest.approx(sign * 10.0, abs=1e-3)
 
 
-def test_the_second_plan_also_runs_for_a_grasp_nothing_was_compared_with(small_db, scene):
-    """`PlannerConfig.fallback_for`: when the first plan's grasp was the only passing candidate, the second
-    plan (looser filters: more candidates) runs too, and its choice replaces the first's when it passed two
-    or more; a second plan that compares nothing leaves the first plan's grasp."""
-    from sgjax.stage1.filters import FilterConfig
-
-    model = ERNet(TINY, rngs=nnx.Rngs(0))  # untrained: candidates score apart
-    strict = dataclasses.replace(CONFIG.stage1, filter=FilterConfig(min_points=150))
-    loose = FilterConfig(min_points=25)
-
-    def passing_scores(stage1):  # the valid candidates' evaluations, best first
-        plan = Planner(model, small_db, dataclasses.replace(CONFIG, stage1=stage1)).plan(*scene, viewpoint=CAMERA)
-        return np.sort(plan.scores["eval_prob"][plan.scores["valid"]])[::-1]
-
-    first, second = passing_scores(strict), passing_scores(dataclasses.replace(strict, filter=loose))
-    # The premise on this scene: the looser filter keeps more, and a second candidate above the first's runner-up.
-    assert len(second) > len(first) >= 2 and second[1] > first[1]
-    bar = float((first[1] + min(first[0], second[1])) / 2)  # one passing candidate in the first plan, two in the second
-    config = dataclasses.replace(CONFIG, stage1=strict, eval_threshold=bar, fallback_filter=loose)
-    alone = Planner(model, small_db, config).plan(*scene, viewpoint=CAMERA)
-    assert alone.ok and not alone.fallback and planner_mod.uncompared(alone, bar) == "lone"
-    again = Planner(model, small_db, dataclasses.replace(config, fallback_for=("lone",))).plan(*scene, viewpoint=CAMERA)
-    assert again.ok and again.fallback and planner_mod.uncompared(again, bar) is None
-    # ... the grasp a planner with the looser filter chooses
-    direct = Planner(model, small_db, dataclasses.replace(config, stage1=dataclasses.replace(strict, filter=loose))).plan(
-        *scene, viewpoint=CAMERA)
-    np.testing.assert_array_equal(again.pose, direct.pose)
-    # A second plan that compares nothing (the same filter) leaves the first plan's grasp, timed with both.
-    same = Planner(model, small_db, dataclasses.replace(config, fallback_filter=strict.filter, fallback_for=("lone", "refined")))
-    kept = same.plan(*scene, viewpoint=CAMERA)
-    assert kept.ok and not kept.fallback and planner_mod.uncompared(kept, bar) == "lone"
-    np.testing.assert_array_equal(kept.pose, alone.pose)
-    assert same._fallback_stages  # the second plan ran
-    with pytest.raises(ValueError, match="fallback_for takes"):
-        dataclasses.replace(CONFIG, fallback_filter=loose, fallback_for=("compared",))
-    with pytest.raises(ValueError, match="fallback_for .* needs a fallback_filter"):
-        dataclasses.replace(CONFIG, fallback_for=("lone",))
-
-
-def test_a_passing_grasp_on_a_fit_is_chosen_first(small_db, scene):
-    """`PlannerConfig.prefer_fit_grasps`: the evaluated choice is the best-evaluated passing grasp on an
-    object's fit when one passes, and E-RNet's best otherwise."""
-    model = ERNet(TINY, rngs=nnx.Rngs(0))  # untrained: candidates score apart
-    # The table z = 0: the fit's grasps are made down to it.
-    config = dataclasses.replace(CONFIG, eval_threshold=0.0, support_plane=(0.0, 0.0, 1.0, 0.0))
-
-    def plan(**changes):
-        return Planner(model, small_db, dataclasses.replace(config, **changes)).plan(*scene, viewpoint=CAMERA)
-
-    plain, first = plan(), plan(prefer_fit_grasps=True)
-    scores = plain.scores
-    on_fit = np.array([plain.candidates[o].primitive_id[r] < 0 for o, r in zip(scores["object"], scores["object_candidate"])])
-    e = np.where(scores["valid"], scores["eval_prob"], -np.inf)
-    assert on_fit.any() and (~on_fit).any()
-    best_fit, best = int(np.argmax(np.where(on_fit, e, -np.inf))), int(np.argmax(e))
-    assert plain.kind == first.kind == "evaluated"
-    assert plain.candidate_index == best and not on_fit[best]  # the premise: E-RNet's best is a template
-    assert first.candidate_index == best_fit and first.score == pytest.approx(e[best_fit])
-    # No grasp on a fit passes the bar: E-RNet's best, as without the preference.
-    bar = float(e[best_fit])
-    assert np.max(e[~on_fit]) > bar
-    none = plan(prefer_fit_grasps=True, eval_threshold=bar)
-    np.testing.assert_array_equal(none.pose, plan(eval_threshold=bar).pose)
-    assert none.candidate_index == best
-    assert planner_mod.preferred_rows(np.array([0.9, 0.8]), np.array([True, False]), np.array([False, True]), 0.7).all()
-    # "second": the first plan's choice is E-RNet's; the second plan's (the first finds nothing) prefers.
-    np.testing.assert_array_equal(plan(prefer_fit_grasps="second").pose, plain.pose)
-    from sgjax.stage1.filters import FilterConfig
-
-    starved = dict(stage1=dataclasses.replace(config.stage1, filter=FilterConfig(min_points=5000)), fallback_filter=FilterConfig())
-    again, again_first = plan(prefer_fit_grasps="second", **starved), plan(prefer_fit_grasps=True, **starved)
-    assert again.fallback and again_first.fallback
-    assert again.candidate_index == again_first.candidate_index and again.pose is not None
-    np.testing.assert_array_equal(again.pose, again_first.pose)
-    second_fit = np.array([again.candidates[o].primitive_id[r] < 0
-                           for o, r in zip(again.scores["object"], again.scores["object_candidate"])])
-    assert second_fit[again.candidate_index] and not second_fit[plan(**starved).candidate_index]
-    with pytest.raises(ValueError, match="prefer_fit_grasps"):
-        dataclasses.replace(CONFIG, prefer_fit_grasps="first")
-
-
 def test_robust_scores_judge_only_the_best_passing_candidates():
     eval_prob = np.array([0.95, 0.6, 0.9, 0.99, 0.8, np.nan], np.float32)
     valid = np.array([True, True, True, False, True, True])
@@ -809,73 +656,17 @@ def test_robust_scores_judge_only_the_best_passing_candidates():
         asked.append(np.asarray(index))
         return np.where(np.asarray(index)[:, None] == 0, 0.2, 0.9) * np.ones((len(index), 5))
 
-    robust = planner_mod.robust_scores(eval_prob, valid, 0.7, 2, judge)
+    robust = policy.robust_scores(eval_prob, valid, 0.7, 2, judge)
     np.testing.assert_array_equal(asked[0], [0, 2])  # 0.99 is invalid, 0.8 is third, 0.6 and NaN fail
     np.testing.assert_allclose(robust[[0, 2]], [(0.95 + 5 * 0.2) / 6, (0.9 + 5 * 0.9) / 6], atol=1e-6)
     assert np.isnan(robust[[1, 3, 4, 5]]).all()
     choice = {"index": np.int32(0), "kind": np.int32(1), "variant": np.int32(-1), "score": np.float32(0.95), "pose": None}
-    out = planner_mod.robust_choice(choice, {"eval_prob": eval_prob, "robust_score": robust})
+    out = policy.robust_choice(choice, {"eval_prob": eval_prob, "robust_score": robust})
     assert int(out["index"]) == 2 and out["score"] == pytest.approx(0.9)
-    # own=False (a judge network's scores, the own pose among them): the mean of the judged scores alone.
-    alone_mean = planner_mod.robust_scores(eval_prob, valid, 0.7, 2, judge, own=False)
-    np.testing.assert_allclose(alone_mean[[0, 2]], [0.2, 0.9], atol=1e-6)
     # One passing candidate: nothing to compare, nothing judged, the choice stands.
-    alone = planner_mod.robust_scores(eval_prob, valid & (np.arange(6) == 0), 0.7, 4, judge)
-    assert np.isnan(alone).all() and len(asked) == 2
-    assert planner_mod.robust_choice(choice, {"eval_prob": eval_prob, "robust_score": alone}) is choice
-
-
-def test_a_robust_choice_that_must_pass_falls_back_to_what_is_left():
-    """`RobustChoice.must_pass`: a chosen mean at or below the bar sends every judged candidate below it
-    (their means become their evaluations) and the policy decides again; an evaluated candidate not yet
-    judged is judged in turn."""
-    eval_prob = np.array([0.95, 0.9, 0.8, 0.5], np.float32)
-    valid = np.ones(4, bool)
-    means = {0: 0.6, 1: 0.65, 2: 0.85, 3: 0.4}  # each candidate's robust mean, as a judge would give it
-    judge = lambda e, judged: np.where(~judged & (e > 0.7), [means[i] for i in range(4)], np.nan)
-    refine = np.zeros((4, 3), np.float32)
-
-    def decide(e):
-        index, kind, variant, score = planner_mod.decide(e, refine, valid, 0.7, 0.7)
-        return {"index": np.int32(index), "kind": np.int32(kind), "variant": np.int32(variant), "score": np.float32(score),
-                "pose": None}
-
-    scores = {"eval_prob": eval_prob.copy(), "robust_score": np.array([0.6, 0.65, np.nan, np.nan], np.float32)}
-    choice = planner_mod.robust_choice(decide(eval_prob), scores)  # the top two judged: 1 (0.65) wins
-    assert int(choice["index"]) == 1
-    out = planner_mod.passing_robust_choice(choice, scores, 0.7, decide, judge)
-    assert int(out["kind"]) == planner_mod.KIND_EVALUATED and int(out["index"]) == 2  # judged in turn: 0.85 passes
-    np.testing.assert_allclose(scores["eval_prob"], [0.6, 0.65, 0.8, 0.5])
-    np.testing.assert_allclose(scores["robust_score"], [0.6, 0.65, 0.85, np.nan])
-    # A lone candidate whose mean fails: nothing passes, no refinement passes either -> no grasp.
-    lone = {"eval_prob": np.array([0.9, 0.3, 0.2, 0.1], np.float32), "robust_score": np.array([0.6, np.nan, np.nan, np.nan], np.float32)}
-    out = planner_mod.passing_robust_choice(decide(lone["eval_prob"]), lone, 0.7, decide, judge)
-    assert int(out["kind"]) == planner_mod.KIND_NONE and lone["eval_prob"][0] == pytest.approx(0.6)
-    # A mean that passes: the choice stands, nothing changes.
-    kept = {"eval_prob": eval_prob.copy(), "robust_score": np.array([0.9, np.nan, np.nan, np.nan], np.float32)}
-    first = decide(kept["eval_prob"])
-    assert planner_mod.passing_robust_choice(first, kept, 0.7, decide, judge) is first
-
-
-def test_must_pass_in_the_planner_leaves_no_evaluated_grasp_below_its_mean(small_db, scene):
-    """In the planner: perturbed poses 5 cm off (where E-RNet's crop is mostly empty) pull the means far
-    below the own scores; the best mean the plain robust choice executes fails the bar, and with
-    must_pass no judged candidate whose mean fails is executed, each one's evaluation now its mean."""
-    model = ERNet(TINY, rngs=nnx.Rngs(3))
-    far = dict(top=64, shift=0.05)
-    probe = Planner(model, small_db, dataclasses.replace(CONFIG, eval_threshold=0.0, robust=planner_mod.RobustChoice(**far)))
-    s = probe.plan(*scene, viewpoint=CAMERA, seed=0).scores
-    judged = np.isfinite(s["robust_score"])
-    bar = 0.5 * float(np.max(s["robust_score"][judged]) + np.min(s["eval_prob"][judged]))
-    assert np.max(s["robust_score"][judged]) < bar < np.min(s["eval_prob"][judged])  # every own score passes, no mean
-    strict = dataclasses.replace(CONFIG, eval_threshold=bar, refine_threshold=bar, robust=planner_mod.RobustChoice(**far))
-    plain = Planner(model, small_db, strict).plan(*scene, viewpoint=CAMERA, seed=0)
-    assert plain.kind == "evaluated" and plain.scores["robust_score"][plain.candidate_index] < bar
-    must = dataclasses.replace(strict, robust=planner_mod.RobustChoice(**far, must_pass=True))
-    plan = Planner(model, small_db, must).plan(*scene, viewpoint=CAMERA, seed=0)
-    assert plan.kind != "evaluated"
-    again = np.isfinite(plan.scores["robust_score"])
-    assert again.sum() >= 2 and (plan.scores["eval_prob"][again] <= bar).all()
+    alone = policy.robust_scores(eval_prob, valid & (np.arange(6) == 0), 0.7, 4, judge)
+    assert np.isnan(alone).all() and len(asked) == 1
+    assert policy.robust_choice(choice, {"eval_prob": eval_prob, "robust_score": alone}) is choice
 
 
 def test_robust_choice_in_the_planner_is_judged_by_ernet_at_the_perturbed_poses(small_db, scene):
@@ -902,114 +693,6 @@ def test_robust_choice_in_the_planner_is_judged_by_ernet_at_the_perturbed_poses(
     assert plan.score == pytest.approx(float(s["eval_prob"][plan.candidate_index]))
 
 
-def test_a_judge_network_makes_the_robust_choice_among_the_models_finalists(small_db, scene):
-    """`Planner(judge=)`: the model scores every candidate and picks the finalists (its best passing ones);
-    their robust scores are the judge's mean scores at each one's own pose and its `perturbed_poses`
-    (the judge called directly), and the plan executes the highest. A judge without the robust choice
-    is refused."""
-    model, judge = ERNet(TINY, rngs=nnx.Rngs(3)), ERNet(TINY, rngs=nnx.Rngs(11))
-    config = dataclasses.replace(CONFIG, eval_threshold=0.0, robust=planner_mod.RobustChoice(top=4))
-    planner = Planner(model, small_db, config, judge=judge)
-    plan = planner.plan(*scene, viewpoint=CAMERA, seed=0)
-    s = plan.scores
-    judged = np.flatnonzero(np.isfinite(s["robust_score"]))
-    e = np.where(s["valid"], s["eval_prob"], -np.inf)
-    np.testing.assert_array_equal(np.sort(judged), np.sort(np.argsort(-e, kind="stable")[:4]))  # the model's best
-    poses = np.stack([plan.candidates[o].poses[r] for o, r in zip(s["object"], s["object_candidate"])]).astype(np.float32)
-    widths = np.array([plan.candidates[o].widths[r] for o, r in zip(s["object"], s["object_candidate"])], np.float32)
-    around = np.concatenate([poses[judged][:, None], np.asarray(gripper_mod.perturbed_poses(poses[judged], 0.005, 10.0))], 1)
-    scene_pad, scene_mask = planner._scene(scene[0], 0)
-    expected = {}
-    for name, net in (("judge", judge), ("model", model)):
-        graphdef, state = nnx.split(net)
-        out = ernet.score(graphdef, state, scene_pad, around.reshape(-1, 4, 4), np.repeat(widths[judged], 6), scene_mask,
-                          spec=SPEC, key=jax.random.key(0))
-        expected[name] = np.where(out.valid, out.eval_prob, 0.0).reshape(-1, 6).mean(1)
-    np.testing.assert_allclose(s["robust_score"][judged], expected["judge"], atol=2e-5)
-    assert np.abs(expected["judge"] - expected["model"]).max() > 1e-3  # the two networks do judge differently
-    assert plan.kind == "evaluated" and plan.candidate_index == judged[np.argmax(s["robust_score"][judged])]
-    assert plan.score == pytest.approx(float(s["eval_prob"][plan.candidate_index]))  # the model's evaluation
-    with pytest.raises(ValueError, match="robust must not be None"):
-        Planner(model, small_db, CONFIG, judge=judge)
-
-
-def test_robust_choice_counts_perturbed_poses_that_meet_a_neighbours_fit_as_zero(small_db):
-    """`RobustChoice(fits=True)`: beside a low box whose side facing the target is hidden, a perturbed pose
-    whose hand meets the neighbour's fitted superquadric (`neighbours.fit_hits`, called directly) counts
-    0 in its candidate's robust score, and only those: the rest are E-RNet's scores as without the test."""
-    from sgjax.stage1 import neighbours
-
-    points, labels, tall, low = tall_and_low()
-    model = ERNet(TINY, rngs=nnx.Rngs(3))
-    config = dataclasses.replace(CONFIG, eval_threshold=0.0, robust=planner_mod.RobustChoice(top=64, fits=True))
-    planner = Planner(model, small_db, config)
-    plan = planner.plan(points, labels, viewpoint=CAMERA)
-    plain = Planner(model, small_db, dataclasses.replace(config, robust=planner_mod.RobustChoice(top=64))).plan(
-        points, labels, viewpoint=CAMERA)
-    s = plan.scores
-    judged = np.flatnonzero(np.isfinite(s["robust_score"]))
-    np.testing.assert_array_equal(judged, np.flatnonzero(np.isfinite(plain.scores["robust_score"])))
-    poses = np.stack([plan.candidates[o].poses[r] for o, r in zip(s["object"], s["object_candidate"])]).astype(np.float32)
-    widths = np.array([plan.candidates[o].widths[r] for o, r in zip(s["object"], s["object_candidate"])], np.float32)
-    perturbed = np.asarray(gripper_mod.perturbed_poses(poses[judged], 0.005, 10.0)).reshape(-1, 4, 4)
-    fits, mask, pairs = neighbours.obstacle_fits(plan.candidates, [tall, low], config.neighbour_fits)
-    hits = neighbours.fit_hits(perturbed, np.repeat(widths[judged], 5), np.repeat(s["object"][judged], 5).astype(np.int32),
-                               fits, mask, SPEC, config.neighbour_fits, 0.05, (64, 512), pairs).reshape(-1, 5)
-    assert 0 < hits.any(1).sum() < len(judged)  # some judged candidates lose perturbed poses, not all
-    scene_pad, scene_mask = planner._scene(points, 0)
-    graphdef, state = nnx.split(model)
-    out = ernet.score(graphdef, state, scene_pad, perturbed, np.repeat(widths[judged], 5), scene_mask, spec=SPEC,
-                      key=jax.random.key(0))
-    around = np.where(out.valid, out.eval_prob, 0.0).reshape(-1, 5)
-    expected = (s["eval_prob"][judged] + np.where(hits, 0.0, around).sum(1)) / 6
-    np.testing.assert_allclose(s["robust_score"][judged], expected, atol=2e-5)
-    np.testing.assert_allclose(plain.scores["robust_score"][judged], (s["eval_prob"][judged] + around.sum(1)) / 6, atol=2e-5)
-
-
-def test_preferred_keeps_the_robust_scores_of_the_clear_candidates_only():
-    scores = {"robust_score": np.array([0.9, np.nan, 0.8, 0.85], np.float32), "eval_prob": np.array([0.9, 0.95, 0.8, 0.85], np.float32)}
-    some = planner_mod.preferred(scores, np.array([False, True, True, False]))
-    np.testing.assert_array_equal(some["robust_score"], np.array([np.nan, np.nan, 0.8, np.nan], np.float32))
-    assert some["eval_prob"] is scores["eval_prob"]
-    # none clear, or every judged one clear (an unjudged one's mark does not count): nothing to prefer
-    assert planner_mod.preferred(scores, np.zeros(4, bool)) is scores
-    assert planner_mod.preferred(scores, np.array([True, False, True, True])) is scores
-
-
-def test_robust_choice_prefers_candidates_clear_of_the_obstacles_by_the_margin(small_db, scene):
-    """`RobustChoice.prefer_clearance`: a judged candidate is clear when no obstacle point lies in its
-    hand (grown by the margin, swept back over the approach) or between its fingers, and the choice is the
-    best robust mean among the clear ones."""
-    from sgjax.stage1.filters import FilterConfig
-
-    margin = 0.05  # wide, so that on this scene the best robust mean is not clear
-    stage1 = dataclasses.replace(CONFIG.stage1, filter=FilterConfig(shadow_depth=0.0))  # the boxes alone
-    config = dataclasses.replace(CONFIG, stage1=stage1, eval_threshold=0.0, neighbour_fits=None,
-                                 robust=planner_mod.RobustChoice(prefer_clearance=margin))
-    model = ERNet(TINY, rngs=nnx.Rngs(0))  # untrained: candidates score apart
-    plan = Planner(model, small_db, config).plan(*scene, viewpoint=CAMERA)
-    plain = Planner(model, small_db, dataclasses.replace(config, robust=planner_mod.RobustChoice())).plan(*scene, viewpoint=CAMERA)
-    scores = plan.scores
-    judged = np.flatnonzero(np.isfinite(scores["robust_score"]))
-    points, labels = scene
-    for index in judged:
-        o = int(scores["object"][index])
-        cands = plan.candidates[o]
-        pose, width = cands.poses[scores["object_candidate"][index]].astype(np.float64), cands.widths[scores["object_candidate"][index]]
-        other = points[labels != scores["target"][index]]  # the table too: no support plane set
-        local = (other - pose[:3, 3]) @ pose[:3, :3]
-        regions = [*gripper_mod.hand_boxes(SPEC, width, margin, stage1.filter.approach_clearance), gripper_mod.closing_box(SPEC, width)]
-        hit = any(np.asarray(gripper_mod.in_box(local[:, 0], local[:, 1], local[:, 2], box)).any() for box in regions)
-        assert scores["clear"][index] == (not hit), index
-    clear = scores["clear"][judged]
-    assert clear.any() and not clear.all()  # the premise on this scene
-    best_clear = judged[clear][np.argmax(scores["robust_score"][judged[clear]])]
-    assert plan.candidate_index == best_clear
-    assert plain.candidate_index == judged[np.argmax(scores["robust_score"][judged])] != best_clear
-    with pytest.raises(ValueError, match="prefer_clearance"):
-        planner_mod.RobustChoice(prefer_clearance=-0.001)
-
-
 def test_robust_choice_config_errors():
     """Bad `RobustChoice` settings, and more perturbed poses than a Stage-2 call takes, are refused by name."""
     for bad, message in (({"top": 1}, "top must be >= 2"), ({"shift": -0.001}, "shift must be in"),
@@ -1021,68 +704,4 @@ def test_robust_choice_config_errors():
 
 
 # ---------------------------------------------------------------------------------------------
-# `PlannerConfig.failed_last`: after a failed grasp, the other objects first.
 
-def test_failure_counts_give_each_failed_grasp_to_the_object_nearest_its_closing_region():
-    """A failed pose counts for the object with an observed point nearest its closing region's centre,
-    within the radius; one nearer another object counts for that one, one far from all for none."""
-    rng = np.random.default_rng(0)
-    a = rng.uniform([0.0, 0.0, 0.0], [0.04, 0.04, 0.04], (300, 3))
-    b = rng.uniform([0.10, 0.0, 0.0], [0.14, 0.04, 0.04], (300, 3))
-    down = np.diag([1.0, -1.0, -1.0])  # approach straight down
-    L = SPEC.finger_length
-
-    def at(centre):  # a top-down pose whose closing region is centred at `centre`
-        pose = np.eye(4)
-        pose[:3, :3], pose[:3, 3] = down, np.asarray(centre) + np.array([0.0, 0.0, 0.5 * L])
-        return pose
-
-    avoid = np.stack([at([0.02, 0.02, 0.02]), at([0.12, 0.02, 0.02]), at([0.02, 0.02, 0.03]), at([0.07, 0.02, 0.3])])
-    np.testing.assert_array_equal(planner_mod.failure_counts(avoid, [a, b], SPEC, 0.02), [2, 1])
-    np.testing.assert_array_equal(planner_mod.failure_counts(avoid[:0], [a, b], SPEC, 0.02), [0, 0])
-    # Beside object a, 2.5 cm off its side (3.5 cm from b's): within a 5 cm radius, not within 1 cm.
-    beside = at([0.065, 0.02, 0.02])[None]
-    assert planner_mod.failure_counts(beside, [a, b], SPEC, 0.05).sum() == 1
-    assert planner_mod.failure_counts(beside, [a, b], SPEC, 0.01).sum() == 0
-
-
-def test_least_failed_chooses_among_the_objects_with_the_fewest_failures():
-    """Hand-set scores: the choice moves to the best passing candidate of the least-failed objects; an
-    object that failed is chosen again once no other object has a passing candidate."""
-    eval_prob = np.array([0.95, 0.9, 0.8, 0.6, 0.85], np.float32)
-    valid = np.array([True, True, True, True, False])
-    failures = np.array([1, 1, 0, 0, 0])  # candidates 0, 1 on an object that failed once
-    allowed = planner_mod.least_failed(eval_prob, valid, failures, 0.7)
-    np.testing.assert_array_equal(allowed, [False, False, True, True, True])
-    choice = {"index": np.int32(0), "kind": np.int32(planner_mod.KIND_EVALUATED), "score": np.float32(0.95), "pose": None}
-    out = planner_mod.evaluated_choice(choice, eval_prob, valid & allowed, 0.7)
-    assert int(out["index"]) == 2 and out["score"] == pytest.approx(0.8)  # 4 is invalid, 3 does not pass
-    # Only the failed object passes: it is chosen as before.
-    weak = np.array([0.95, 0.9, 0.5, 0.6, 0.85], np.float32)
-    allowed = planner_mod.least_failed(weak, valid, failures, 0.7)
-    assert allowed[:2].all() and planner_mod.evaluated_choice(choice, weak, valid & allowed, 0.7) is choice
-    # Nothing passes: every candidate allowed (the refinement path decides as without it).
-    assert planner_mod.least_failed(np.zeros(5, np.float32), valid, failures, 0.7).all()
-    with pytest.raises(ValueError, match="failed_last must be None or a finite distance > 0"):
-        dataclasses.replace(CONFIG, failed_last=0.0)
-
-
-def test_failed_last_plans_the_other_object_after_a_failed_grasp(small_db, scene):
-    """In the planner: with the executed grasp passed back as failed (`avoid`), the next plan counts it on
-    that object and takes the other object, the robust choice judging only the other object's
-    candidates; without `failed_last` the same plan stays on the first object."""
-    model = ERNet(TINY, rngs=nnx.Rngs(3))
-    config = dataclasses.replace(CONFIG, eval_threshold=0.0, robust=planner_mod.RobustChoice(top=4))
-    plain = Planner(model, small_db, config)
-    first = plain.plan(*scene, viewpoint=CAMERA, seed=0)
-    avoid = first.pose[None]
-    again = plain.plan(*scene, viewpoint=CAMERA, seed=0, avoid=avoid)
-    assert first.kind == "evaluated" and again.target == first.target  # the next-best grasp, on the same object
-    deferring = Planner(model, small_db, dataclasses.replace(config, failed_last=0.02))
-    plan = deferring.plan(*scene, viewpoint=CAMERA, seed=0, avoid=avoid)
-    s = plan.scores
-    on_first = np.asarray(s["target"]) == first.target
-    np.testing.assert_array_equal(s["failures"], on_first.astype(int))
-    assert plan.kind == "evaluated" and plan.target != first.target
-    judged = np.flatnonzero(np.isfinite(s["robust_score"]))
-    assert len(judged) == 4 and not on_first[judged].any()

@@ -157,45 +157,6 @@ def test_transfer_applies_T_q_times_T_c_inverse(small_db):
     np.testing.assert_allclose(np.asarray(widths)[0, 0][np.asarray(mask)[0, 0]], obj_widths, atol=1e-6)
 
 
-@pytest.mark.parametrize("perm", [(2, 0, 1), (1, 0, 2)])
-def test_relabelled_axes_match_and_transfer_as_the_primitives_own(small_db, perm):
-    """`MatchConfig(relabel_axes=True)`: a fit whose axes are a primitive's, labelled in another order
-    (an even and an odd permutation), finds that primitive, and its grasps land where the primitive's own
-    labelling puts them; the paper's matching ranks the primitive below the top K2 or not at all."""
-    from sgjax.stage1.matching import MatchConfig
-
-    mdb = MatchDB.from_db(small_db)
-    i = int(np.argmax(np.ptp(small_db.sq_scale, 1) / small_db.sq_scale.max(1) * (np.ptp(small_db.sq_epsilon, 1) < 1e-3)))
-    scale, eps = np.asarray(small_db.sq_scale[i]), np.asarray(small_db.sq_epsilon[i])
-    assert len(set(np.round(scale, 4))) == 3 and eps[0] == eps[1]  # distinct axes; eps1 = eps2: relabelling is exact
-    rot = Rotation.from_euler("zyx", (30, 20, 10), degrees=True).as_matrix()
-    own = Superquadric.create(scale[None], eps[None], rot[None], np.array([[0.3, 0.0, 0.1]]))
-    res = MatchResult(*(jnp.asarray([[v]]) for v in (i, 0.0, 0.0, 0, 0)))
-    expected, _, mask = transfer_grasps(own, res, mdb)
-    expected = np.asarray(expected)[0, 0][np.asarray(mask)[0, 0]]
-    # The same superquadric with its axes relabelled: axis j of the new frame is the primitive's axis perm[j].
-    axes = rot[:, perm] * (1.0 if perm in ((1, 2, 0), (2, 0, 1)) else np.array([1.0, 1.0, -1.0]))
-    fit = Superquadric.create(scale[list(perm)][None], eps[None], axes[None], np.array([[0.3, 0.0, 0.1]]))
-    cfg = MatchConfig(relabel_axes=True)
-    found = match(fit.scale, fit.epsilon, mdb, cfg)
-    assert int(found.index[0, 0]) == i and float(found.score[0, 0]) < 1e-4
-    poses, _, mask = transfer_grasps(fit, jax.tree.map(lambda x: x[:, :1], found), mdb)
-    assert _same_grasp_sets(np.asarray(poses)[0, 0][np.asarray(mask)[0, 0]], expected)
-    paper = match(fit.scale, fit.epsilon, mdb, MatchConfig())
-    assert paper.relabel is None and (int(paper.index[0, 0]) != i or float(paper.score[0, 0]) > 1e-2)
-    # relabel_extra: the paper's K2 first, unchanged, then the other labellings' best, the primitive first.
-    extra = match(fit.scale, fit.epsilon, mdb, MatchConfig(relabel_extra=3))
-    k2 = paper.index.shape[1]
-    assert extra.index.shape == (1, k2 + 3) and (np.asarray(extra.relabel)[0, :k2] == 0).all()
-    np.testing.assert_array_equal(np.asarray(extra.index)[:, :k2], np.asarray(paper.index))
-    assert int(extra.index[0, k2]) == i and int(extra.relabel[0, k2]) > 0
-    poses, _, mask = transfer_grasps(fit, jax.tree.map(lambda x: x[:, k2:k2 + 1], extra), mdb)
-    assert _same_grasp_sets(np.asarray(poses)[0, 0][np.asarray(mask)[0, 0]], expected)
-    for bad in ({"relabel_extra": -1}, {"relabel_axes": True, "relabel_extra": 2}, {"K2": 0}):
-        with pytest.raises(ValueError):
-            MatchConfig(**bad)
-
-
 # ---------------------------------------------------------------------------------------------
 # Coarse filters on constructed cases.
 

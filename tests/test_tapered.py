@@ -3,7 +3,7 @@ as a cylinder's of the same size, though a superquadric cannot taper (docs/limit
 
 The objects stand or lie alone on the table, seen by the benchmark camera; the planner (small database,
 the shipped E-RNet) plans on the view; its chosen grasp and its next best-scored candidates are executed
-in the benchmark's trial. `benchmarks/tapered_objects.py` measures the same at full size.
+in the benchmark's trial.
 """
 
 from __future__ import annotations

@@ -95,27 +95,6 @@ def test_batches_have_fixed_shape_and_cover_everything():
     assert weights.sum() == 10 and sorted(index[weights > 0].tolist()) == list(range(10))
 
 
-def test_scene_batches_hold_whole_scenes():
-    """scene_batch_indices: every sample once, fixed shapes, each scene's samples contiguous (a scene
-    spans at most two batches), the order random but fixed by the generator."""
-    seeds = np.repeat(np.arange(100, 112), [3, 5, 1, 4, 2, 6, 3, 3, 1, 5, 2, 4])
-    seeds = seeds[np.random.default_rng(7).permutation(len(seeds))]  # shards need not be sorted
-    batches = list(dataset.scene_batch_indices(seeds, 8, np.random.default_rng(0)))
-    assert all(len(i) == 8 and len(w) == 8 for i, w in batches)
-    weights = np.concatenate([w for _, w in batches])
-    order = np.concatenate([i for i, _ in batches])[weights > 0]
-    assert sorted(order.tolist()) == list(range(len(seeds)))
-    runs = seeds[order]
-    assert len(np.flatnonzero(np.diff(runs))) == len(np.unique(seeds)) - 1  # one run per scene
-    again = np.concatenate([i for i, _ in dataset.scene_batch_indices(seeds, 8, np.random.default_rng(0))])
-    other = np.concatenate([i for i, _ in dataset.scene_batch_indices(seeds, 8, np.random.default_rng(1))])
-    assert np.array_equal(again[weights > 0], order) and not np.array_equal(other[weights > 0], order)
-    # make_batch numbers a batch's scenes: equal seeds share a group, different seeds do not.
-    cols = {**dataset.synthetic_samples(8, seed=0), "scene_seed": np.array([5, 9, 5, 7, 9, 9, 7, 5])}
-    group = dataset.make_batch(cols, np.arange(8), np.ones(8, np.float32)).group
-    assert np.array_equal(group[:, None] == group[None, :], cols["scene_seed"][:, None] == cols["scene_seed"][None, :])
-
-
 def test_synthetic_samples_are_labelled_by_geometry(samples):
     assert samples["region_mask"].sum(1).min() > 0
     labels, refine = samples["label"], samples["refine_labels"]
@@ -147,81 +126,6 @@ def test_model_overfits_a_tiny_batch(samples):
     assert np.mean(losses[-10:]) < 0.5 * losses[0], losses[::10]
     assert np.mean(eval_losses[-10:]) < 0.7 * eval_losses[0], eval_losses[::10]  # both heads learn
     assert train_step._cache_size() == 1
-
-
-def test_rank_loss_learns_the_order_within_scenes(samples):
-    """rank_weight > 0: the step adds the within-scene ranking loss, and training on one batch of whole
-    scenes lowers it (the network learns to put each scene's successes above its failures)."""
-    config = dataclasses.replace(CONFIG, rank_weight=1.0, lr=3e-3)  # CONFIG's 1e-2 overshoots on one batch
-    model = ernet.ERNet(TINY, rngs=nnx.Rngs(0))
-    graphdef, params = nnx.split(model)
-    tx, train_step, _ = trainer.make_steps(graphdef, config)
-    params, opt_state = jax.device_put((params, tx.init(params)), jax.devices()[0])
-    index, weight = next(dataset.scene_batch_indices(samples["scene_seed"], 16, np.random.default_rng(0)))
-    batch = jax.device_put(dataset.make_batch(samples, index, weight))
-    ranks = []
-    for step in range(160):
-        params, opt_state, stats = train_step(params, opt_state, batch, jax.random.key(step), jnp.float32(1.0))
-        ranks.append(float(stats["rank_loss"] / stats["n"]))
-    assert ranks[0] > 0.1 and np.mean(ranks[-20:]) < 0.5 * ranks[0], ranks[::10]
-    parts = float(stats["eval_loss"] + stats["refine_loss"] + stats["rank_loss"])
-    np.testing.assert_allclose(float(stats["loss"]), parts, rtol=1e-4)  # lambda = 1 each in TINY
-
-
-def test_rank_weight_is_part_of_a_run(samples, tmp_path):
-    """A ranking run records its loss per epoch and resumes only with the same weight; runs without it
-    keep the fingerprint they always had; the PointNetGPD baseline refuses it."""
-    config = dataclasses.replace(CONFIG, epochs=1, rank_weight=0.5)
-    result = trainer.train(samples, tmp_path / "r", config, progress=False)
-    assert result.history[0]["train"]["rank_loss"] > 0
-    assert "rank_weight" not in CONFIG.resume_key() and config.resume_key()["rank_weight"] == 0.5
-    with pytest.raises(ValueError, match="other settings"):
-        trainer.train(samples, tmp_path / "r", dataclasses.replace(config, epochs=2, rank_weight=0.0), progress=False)
-    with pytest.raises(ValueError, match="rank_weight"):
-        trainer.TrainConfig(rank_weight=-1.0)
-    from sgjax.stage2.pointnetgpd import PointNetGPDConfig
-    from train import train_pointnetgpd
-
-    gpd = dataclasses.replace(CONFIG, model=PointNetGPDConfig.tiny(), rank_weight=1.0)
-    with pytest.raises(ValueError, match="rank_weight"):
-        train_pointnetgpd.train(samples, tmp_path / "g", gpd, progress=False)
-
-
-def test_swap_fingers_augments_training_batches_only(samples, tmp_path):
-    """swap_fingers: about half of a training batch's regions become their finger-swapped twins (x, y
-    negated), the rest and every other field unchanged; the evaluation step never swaps (the same
-    held-out scores with and without it); a run records it in its fingerprint, runs without it keep
-    theirs; the PointNetGPD baseline trains with it too."""
-    batch = dataset.make_batch(samples, np.arange(64), np.ones(64, np.float32))
-    out = trainer.swapped_fingers(batch, jax.random.key(0))
-    region, swapped = np.asarray(batch.region), np.asarray(out.region)
-    flipped = np.all(np.isclose(swapped, region * np.array([-1, -1, 1], np.float32)), axis=(1, 2))
-    kept = np.all(swapped == region, axis=(1, 2))
-    assert np.all(flipped ^ kept) and 16 <= flipped.sum() <= 48
-    for name in ("region_mask", "width", "label", "refine_labels", "weight", "group"):
-        np.testing.assert_array_equal(getattr(out, name), getattr(batch, name))
-
-    config = dataclasses.replace(CONFIG, epochs=1, swap_fingers=True)
-    model = ernet.ERNet(TINY, rngs=nnx.Rngs(0))
-    graphdef, params = nnx.split(model)
-    # Steps of their own (another threshold): CONFIG's cached ones must compile once, for its own batches.
-    other = dict(threshold=0.6)
-    _, _, eval_plain = trainer.make_steps(graphdef, dataclasses.replace(CONFIG, **other))
-    _, _, eval_swap = trainer.make_steps(graphdef, dataclasses.replace(config, **other))
-    eval_batch = jax.device_put(batch)
-    a, b = eval_plain(params, eval_batch, jax.random.key(1)), eval_swap(params, eval_batch, jax.random.key(1))
-    np.testing.assert_array_equal(a["per_sample"]["prob"], b["per_sample"]["prob"])
-    assert "swap_fingers" not in CONFIG.resume_key() and config.resume_key()["swap_fingers"] is True
-    result = trainer.train(samples, tmp_path / "r", config, progress=False)
-    assert np.isfinite(result.history[0]["train"]["loss"])
-    with pytest.raises(ValueError, match="other settings"):
-        trainer.train(samples, tmp_path / "r", dataclasses.replace(config, epochs=2, swap_fingers=False), progress=False)
-    from sgjax.stage2.pointnetgpd import PointNetGPDConfig
-    from train import train_pointnetgpd
-
-    gpd = train_pointnetgpd.train(samples, tmp_path / "g", dataclasses.replace(config, model=PointNetGPDConfig.tiny()),
-                                  progress=False)
-    assert np.isfinite(gpd.history[0]["train"]["loss"])
 
 
 @pytest.fixture(scope="module")
@@ -349,8 +253,6 @@ def test_cli_train_synthetic_then_resume_and_bad_data(tmp_path, capsys):
     assert cli.main([*args, "--epochs", "2", "--held-out", "0"]) == 0  # continues after epoch 1
     assert [r["epoch"] for r in json.loads((out / "metrics.json").read_text())["history"]] == [1, 2]
     assert cli.main([*args, "--epochs", "2", "--held-out", "0.5"]) == 2  # other settings: refused
-    assert "other settings" in capsys.readouterr().err
-    assert cli.main([*args, "--epochs", "3", "--held-out", "0", "--swap-fingers"]) == 2  # so is an augmentation
     assert "other settings" in capsys.readouterr().err
     (tmp_path / "empty").mkdir()
     assert cli.main(["train", "--data", str(tmp_path / "empty"), "--out", str(out), "--quiet"]) == 2

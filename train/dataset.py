@@ -366,9 +366,8 @@ def split_by_scene(scene_seed: np.ndarray, held_out_fraction: float = 0.1, seed:
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class Batch:
-    """A fixed-size batch (numpy or device arrays): the training fields, `weight` [B] (0 for padding
-    rows of the last batch, 1 otherwise) and `group` int32[B] (samples of one scene share a number,
-    numbered within the batch: what a within-scene ranking loss pairs)."""
+    """A fixed-size batch (numpy or device arrays): the training fields plus `weight` [B] (0 for
+    padding rows of the last batch, 1 otherwise)."""
 
     region: np.ndarray
     region_mask: np.ndarray
@@ -376,21 +375,16 @@ class Batch:
     label: np.ndarray
     refine_labels: np.ndarray
     weight: np.ndarray
-    group: np.ndarray
 
 
-TRAIN_FIELDS = ("region", "region_mask", "width", "label", "refine_labels", "scene_seed")
-BATCH_FIELDS = TRAIN_FIELDS[:-1]  # scene_seed enters a batch as its within-batch `group`
+TRAIN_FIELDS = ("region", "region_mask", "width", "label", "refine_labels")
 
 
 def batch_indices(n: int, batch_size: int, rng: np.random.Generator | None) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     """(index[B], weight[B]) per batch over n samples: shuffled when `rng` is given; the last batch is
     padded with index 0 / weight 0 so every batch has the same shape (one compile)."""
-    return _padded_batches(rng.permutation(n) if rng is not None else np.arange(n), batch_size)
-
-
-def _padded_batches(order: np.ndarray, batch_size: int) -> Iterator[tuple[np.ndarray, np.ndarray]]:
-    for start in range(0, len(order), batch_size):
+    order = rng.permutation(n) if rng is not None else np.arange(n)
+    for start in range(0, n, batch_size):
         index = order[start : start + batch_size]
         weight = np.ones(batch_size, np.float32)
         if len(index) < batch_size:
@@ -399,25 +393,9 @@ def _padded_batches(order: np.ndarray, batch_size: int) -> Iterator[tuple[np.nda
         yield index, weight
 
 
-def scene_batch_indices(scene_seed: np.ndarray, batch_size: int, rng: np.random.Generator) -> Iterator[tuple[np.ndarray, np.ndarray]]:
-    """(index[B], weight[B]) per batch, the samples ordered scene by scene (scenes in a random order, the
-    samples of a scene in a random order) so that a batch holds whole scenes' samples (a scene may
-    straddle two batches): what a within-scene ranking loss needs. scene_seed int64[N]; the last batch
-    is padded as in `batch_indices`."""
-    scenes, inverse = np.unique(np.asarray(scene_seed), return_inverse=True)
-    scene_rank = rng.permutation(len(scenes))[inverse]
-    order = np.lexsort((rng.random(len(inverse)), scene_rank))  # last key sorts first: by scene, then at random
-    return _padded_batches(order, batch_size)
-
-
 def make_batch(samples: Mapping[str, np.ndarray], index: np.ndarray, weight: np.ndarray) -> Batch:
-    """Array slices of preloaded columns (no per-sample Python work). Columns without "scene_seed" give
-    every row its own group (no within-scene pairs)."""
-    if "scene_seed" in samples:
-        group = np.unique(np.asarray(samples["scene_seed"])[index], return_inverse=True)[1].astype(np.int32).reshape(-1)
-    else:
-        group = np.arange(len(index), dtype=np.int32)
-    return Batch(**{k: samples[k][index] for k in BATCH_FIELDS}, weight=weight, group=group)
+    """Array slices of preloaded columns (no per-sample Python work)."""
+    return Batch(**{k: samples[k][index] for k in TRAIN_FIELDS}, weight=weight)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -39,6 +39,7 @@ import re
 import socket
 import time
 from collections.abc import Callable, Sequence
+from typing import ClassVar
 
 import numpy as np
 
@@ -68,7 +69,7 @@ class LabelConfig:
 
     n_objects: objects per scene (paper: 5). targets_per_scene: objects whose grasps are executed.
     per_source: (source, grasps) pairs: per target, that many grasps drawn at random from each source
-    (`train.sources.SOURCES`; fewer when a source has fewer), each with its 3 refinements (4 trials).
+    (`train.sources.DRAWN`; fewer when a source has fewer), each with its 3 refinements (4 trials).
     scenes_per_shard: scenes per output file (the resume granularity).
     min_target_points: a target must show at least this many camera points (Stage 1's own minimum).
     held_out_objects / held_out_object_every: see the module docstring; () for none.
@@ -96,8 +97,8 @@ class LabelConfig:
     # whole scene): a few kept grasps per target are all a label source needs, at a fraction of the cost.
     gpd: GPDConfig = GPDConfig(num_samples=32, max_points=2048)
     perturbation: sources.Perturbation = sources.Perturbation()
-    # Relabelled matches the stage1_relabel source appends after the paper's K2 (unused without it).
-    relabel_extra: int = 5
+    # Retired (docs/experiments.md): the relabelled-matches source's count; a saved default still loads.
+    RETIRED_FIELDS: ClassVar[dict] = {"relabel_extra": 5}
 
     def __post_init__(self):
         for name in ("n_objects", "targets_per_scene", "scenes_per_shard", "min_target_points", "max_scene_points"):
@@ -108,15 +109,13 @@ class LabelConfig:
         per_source = tuple((str(name), int(count)) for name, count in self.per_source)
         for name, count in per_source:
             sources.source_index(name)  # raises naming the known sources
-            if name == "finalist":
-                raise ValueError("LabelConfig.per_source: finalist grasps come from replayed benchmark scenes "
-                                 "(sgjax label-finalists), not from sgjax label")
+            if name not in sources.DRAWN:
+                raise ValueError(f"LabelConfig.per_source: {name} only names samples of directories labelled by "
+                                 f"earlier versions; the sources drawn are {', '.join(sources.DRAWN)}")
             if count < 0:
                 raise ValueError(f"LabelConfig.per_source: {name} must have >= 0 grasps, got {count}")
         if len({name for name, _ in per_source}) != len(per_source) or not any(c for _, c in per_source):
             raise ValueError(f"LabelConfig.per_source must name each source once and ask for some grasps, got {per_source}")
-        if self.relabel_extra < 1:
-            raise ValueError(f"LabelConfig.relabel_extra must be >= 1, got {self.relabel_extra}")
         if self.gpd.spec != self.spec:
             raise ValueError("LabelConfig.gpd.spec differs from the Stage-1 gripper spec")
         object.__setattr__(self, "per_source", per_source)
@@ -214,12 +213,10 @@ def stage2_cloud(points: np.ndarray, config: LabelConfig, labels: np.ndarray | N
 
 @dataclasses.dataclass
 class Labellers:
-    """What labels a scene: Stage 1 as the planner runs it, Stage 1 with the paper's filters only, and
-    (when the stage1_relabel source is asked for) Stage 1 with relabelled matches appended."""
+    """What labels a scene: Stage 1 as the planner runs it and Stage 1 with the paper's filters only."""
 
     stage1: Stage1
     stage1_paper: Stage1
-    stage1_relabel: Stage1 | None = None
 
     @classmethod
     def make(cls, config: LabelConfig, stage1: Stage1 | None = None) -> Labellers:
@@ -227,10 +224,7 @@ class Labellers:
         stage1 = Stage1(None, config.stage1) if stage1 is None else stage1
         if stage1.config != config.stage1:
             raise ValueError("stage1.config differs from config.stage1")
-        relabel = None
-        if dict(config.per_source).get("stage1_relabel", 0):
-            relabel = Stage1(stage1.db, sources.relabelled_matches(config.stage1, config.relabel_extra))
-        return cls(stage1, Stage1(stage1.db, sources.paper_filters(config.stage1)), relabel)
+        return cls(stage1, Stage1(stage1.db, sources.paper_filters(config.stage1)))
 
 
 def scene_objects(index: int, objects: Sequence, config: LabelConfig, rng: np.random.Generator) -> tuple[list, int]:
@@ -273,15 +267,6 @@ def scene_candidates(
         if name in wanted or perturbed:
             batch = stage1.batch(clouds, scenes, views, seed % (2**31), scene_lib.TABLE_PLANE)[: len(visible)]
             found[name] = {int(k): (c.poses, c.widths) for k, c in zip(visible, batch)}
-    if "stage1_relabel" in wanted:
-        if labellers.stage1_relabel is None:
-            raise ValueError("the stage1_relabel source is asked for but the labellers have no relabelling Stage 1")
-        batch = labellers.stage1_relabel.batch(clouds, [obs.points] * len(clouds), views, seed % (2**31), scene_lib.TABLE_PLANE)
-        k2 = labellers.stage1_relabel.config.match.K2
-        # Only the relabelled matches' grasps (rank >= K2): the paper's own are the stage1 source.
-        found["stage1_relabel"] = {
-            int(k): (c.poses[c.match_rank >= k2], c.widths[c.match_rank >= k2]) for k, c in zip(visible, batch[: len(visible)])
-        }
     targets: list[int] = []
     use_gpd = "gpd" in wanted or perturbed
     if use_gpd:
@@ -334,7 +319,7 @@ def _no_samples() -> tuple[dict[str, np.ndarray], np.ndarray]:
 def labelled_scene(index: int, objects: Sequence, config: LabelConfig) -> tuple[scene_lib.Scene, np.random.Generator]:
     """Scene `index` of a labelling run, rebuilt exactly (it depends only on the config, the objects
     and the index) -> (the settled scene, the scene's random generator as labelling goes on with it).
-    Its samples' grasps replay on it to their recorded outcomes (`benchmarks/label_repeatability.py`).
+    Its samples' grasps replay on it to their recorded outcomes.
     Raises ValueError when a mesh cannot be loaded."""
     seed = scene_seed(config.seed, index)
     rng = np.random.default_rng(seed)

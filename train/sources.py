@@ -2,7 +2,7 @@
 
 E-RNet must judge any candidate the planner may hand it, including the ones Stage 1's extra filters
 would have removed. Each labelled scene therefore mixes grasps from several sources, and every sample
-records its source (`SOURCES`, stored as its index):
+records its source (`SOURCES`, stored as its index); `sgjax label` draws these (`DRAWN`):
 
   stage1        Stage 1 as the planner runs it (all filters; the scene cloud for filter (iv)).
   stage1_paper  Stage 1 with only the paper's three filters (i)-(iii) plus the table (v): no scene
@@ -10,17 +10,13 @@ records its source (`SOURCES`, stored as its index):
                 the extra filters remove is labelled instead of never being seen.
   gpd           GPD-style antipodal samples on the target (`sgjax.samplers.gpd`), every neighbour an
                 obstacle, picked at random among the kept ones (not the best-ranked: a spread of quality).
-  stage1_relabel
-                Stage 1 as the planner runs it, with `MatchConfig.relabel_extra` matches of the fitted
-                superquadric's other axis labellings appended; only the grasps transferred from those
-                extra matches are kept (the rest is the stage1 source). A single view often labels a flat
-                object's axes so that the database's matching shape ranks low; these are the candidates
-                that reach it (issue "Stage 2, part 2").
-  finalist      the planner's own finalists (its robust choice's best-evaluated candidates) on the states
-                of replayed benchmark scenes, each executed with its refinements (`train.finalists`,
-                `sgjax label-finalists`); not drawn by `sgjax label`.
   perturbed     grasps of the sources above moved by 0.5-2 cm and turned by 5-20 deg about the centre
                 of the closing region: near misses and hard negatives.
+
+Two more codes name the samples of directories labelled by earlier versions, so that those stay readable
+and their per-source judgement keeps its rows: stage1_relabel (Stage 1 with matches of the fit's other
+axis labellings appended, only those matches' grasps) and finalist (the planner's finalists on replayed
+benchmark states). Neither is drawn any more (docs/experiments.md).
 
 Everything here is host-side NumPy around jitted, fixed-shape JAX calls (one compile per config).
 """
@@ -38,6 +34,8 @@ from sgjax.stage1.pipeline import Stage1Config
 
 # Appended only: a stored code is an index into this tuple, so older label directories stay readable.
 SOURCES = ("stage1", "stage1_paper", "gpd", "perturbed", "stage1_relabel", "finalist")
+# The sources `sgjax label` can draw; the others only name samples of directories labelled before.
+DRAWN = ("stage1", "stage1_paper", "gpd", "perturbed")
 
 
 def source_index(name: str) -> int:
@@ -54,16 +52,6 @@ def paper_filters(config: Stage1Config) -> Stage1Config:
     are zeroed too, and a finger whose contact face is hidden is not held against the grasp."""
     relaxed = dataclasses.replace(config.filter, hidden_contacts="accept", shadow_depth=0.0, obstacle_margin=0.0)
     return dataclasses.replace(config, filter=relaxed)
-
-
-def relabelled_matches(config: Stage1Config, extra: int) -> Stage1Config:
-    """`config` whose matching appends `extra` matches of the fitted superquadric's other axis labellings
-    after the paper's top K2 (`MatchConfig.relabel_extra`); the stage1_relabel source keeps the grasps
-    of those (match_rank >= K2)."""
-    if extra < 1:
-        raise ValueError(f"the stage1_relabel source needs relabel_extra >= 1, got {extra}")
-    match = dataclasses.replace(config.match, relabel_axes=False, relabel_extra=int(extra))
-    return dataclasses.replace(config, match=match)
 
 
 @dataclasses.dataclass(frozen=True)

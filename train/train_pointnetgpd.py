@@ -41,7 +41,6 @@ from train.trainer import (
     make_optimizer,
     run_training,
     steps_builder,
-    swapped_fingers,
 )
 
 
@@ -76,8 +75,7 @@ def make_steps(graphdef: nnx.GraphDef, config: TrainConfig):
         logits, weight = aux
         return {"prob": probability(logits), "weight": weight}
 
-    return jit_steps(make_optimizer(config), forward, stats, model_config.noise_std, per_sample,
-                     swapped_fingers if config.swap_fingers else None)
+    return jit_steps(make_optimizer(config), forward, stats, model_config.noise_std, per_sample)
 
 
 def train(
@@ -99,8 +97,6 @@ def train(
     config = default_config() if config is None else config
     if not isinstance(config.model, PointNetGPDConfig):
         raise TypeError(f"config.model must be a PointNetGPDConfig, got {type(config.model).__name__}")
-    if config.rank_weight:
-        raise ValueError("rank_weight is an E-RNet loss; PointNetGPD trains with its own (set rank_weight=0)")
     if init is None:
         model = PointNetGPD(config.model, rngs=nnx.Rngs(config.seed))
     else:

@@ -50,11 +50,10 @@ from sgjax.stage2.ernet import (
     ERNetConfig,
     ernet_loss,
     load_model,
-    ranking_loss,
     prepare_inputs,
 )
 from sgjax.utils.files import atomic_write, atomic_write_text
-from sgjax.geometry.gripper import GripperSpec, swap_fingers_local
+from sgjax.geometry.gripper import GripperSpec
 from train import dataset
 
 # ---------------------------------------------------------------------------------------------
@@ -74,14 +73,6 @@ class TrainConfig:
     lr_decay_epochs: the last N epochs lower the learning rate along a half cosine from `lr` to 0,
         step by step (a constant-then-decay schedule); 0 (default, the paper): constant `lr`. Like
         `epochs`, it only shapes the schedule's tail, so a resumed run may add or change it.
-    rank_weight: weight of a within-scene ranking loss on the evaluation logits added to the paper's
-        loss (`sgjax.stage2.ernet.ranking_loss`: every success should outscore every failure of its
-        scene); > 0 also draws the batches scene by scene (`dataset.scene_batch_indices`) so that a
-        batch holds pairs to rank. 0 (default, the paper): the paper's loss and shuffled batches.
-    swap_fingers: each training sample is seen, with probability 1/2, as its twin with the fingers
-        swapped (`gripper.swap_fingers_local`: the grasp frame turned 180 degrees about the approach
-        axis), the same physical grasp with the same labels: an augmentation by the gripper's symmetry,
-        which the paper's input frame does not give the network. False (default): as labelled.
     devices: data-parallel width: each batch is split over the first `devices` JAX devices (a mesh
         axis "data"), parameters and optimiser state are replicated; `batch_size` must be divisible
         by it. 1 (default): one device, as before. It changes where the step runs, not what it
@@ -99,8 +90,6 @@ class TrainConfig:
     prefetch: int = 4
     lr_decay_epochs: int = 0
     devices: int = 1
-    rank_weight: float = 0.0
-    swap_fingers: bool = False
     model: ERNetConfig = DEFAULT_MODEL
     spec: GripperSpec = DEFAULT_SPEC
 
@@ -113,8 +102,6 @@ class TrainConfig:
             raise ValueError("threshold must be in (0, 1)")
         if not 0 <= self.lr_decay_epochs <= self.epochs:
             raise ValueError(f"lr_decay_epochs must be in [0, epochs={self.epochs}], got {self.lr_decay_epochs}")
-        if not self.rank_weight >= 0:
-            raise ValueError(f"rank_weight must be >= 0, got {self.rank_weight}")
         if self.devices < 1:
             raise ValueError(f"devices must be >= 1, got {self.devices}")
         if self.batch_size % self.devices:
@@ -140,10 +127,6 @@ class TrainConfig:
         # before the setting existed keep their fingerprint.
         for name in ("epochs", "prefetch", "lr_decay_epochs", "devices"):
             d.pop(name)
-        if not self.rank_weight:  # runs written before the setting existed keep their fingerprint
-            d.pop("rank_weight")
-        if not self.swap_fingers:  # likewise
-            d.pop("swap_fingers")
         return json.loads(json.dumps(d))  # tuples -> lists, as stored in JSON
 
 
@@ -180,16 +163,13 @@ def _batch_stats(output, batch: dataset.Batch, weight, loss, parts, threshold: f
     stats = classification_stats(output.eval_prob, output.eval_logits, batch.label, weight, batch.weight, threshold)
     n = stats["n"]
     refine_ok = (output.refine_prob >= 0.5) == (batch.refine_labels == 1)
-    out = {
+    return {
         **stats,
         "loss": loss * n,
         "eval_loss": parts["eval"] * n,
         "refine_loss": parts["refine"] * n,
         "refine_correct": jnp.sum(weight[:, None] * refine_ok, axis=0),
     }
-    if "rank" in parts:
-        out["rank_loss"] = parts["rank"] * n
-    return out
 
 
 def step_config(config: TrainConfig) -> TrainConfig:
@@ -200,32 +180,19 @@ def step_config(config: TrainConfig) -> TrainConfig:
     return dataclasses.replace(config, epochs=1, seed=0, held_out_fraction=0.0, prefetch=1, lr_decay_epochs=0, devices=1)
 
 
-AUGMENT_STREAM = 0x5A17  # fold_in(step key, this): the augmentation's randomness, apart from the input noise's
-
-
-def swapped_fingers(batch: dataset.Batch, key) -> dataset.Batch:
-    """`TrainConfig.swap_fingers`: each sample's region [B, P, 3] replaced by its finger-swapped twin's
-    (`gripper.swap_fingers_local`) with probability 1/2 (labels unchanged: the same physical grasp)."""
-    swap = jax.random.bernoulli(key, 0.5, batch.label.shape)
-    return dataclasses.replace(batch, region=jnp.where(swap[:, None, None], swap_fingers_local(batch.region), batch.region))
-
-
 def jit_steps(tx: optax.GradientTransformation, forward: Callable, stats: Callable, noise_std: float,
-              per_sample: Callable | None = None, augment: Callable | None = None):
+              per_sample: Callable | None = None):
     """-> (tx, train_step, eval_step) for any network of this trainer.
 
     forward(params, batch, key, noise_std) -> (loss, aux); stats(batch, loss, aux) -> dict of sums;
     per_sample(aux) -> {"prob": [B], "weight": [B], optionally "refine_prob": [B, K]} (the judgement
-    metrics' inputs, `train.judgement`); augment(batch, key) -> batch, applied to training batches only
-    (None: none).
+    metrics' inputs, `train.judgement`).
     train_step(params, opt_state, batch, key, lr_scale) -> (params, opt_state, stats) (params and
     state donated; lr_scale [] multiplies the step, the schedule's factor, traced so it never recompiles);
     eval_step(params, batch, key) -> stats, without input noise, with stats["per_sample"] when given.
     """
 
     def train_step(params, opt_state, batch, key, lr_scale):
-        if augment is not None:
-            batch = augment(batch, jax.random.fold_in(key, AUGMENT_STREAM))
         (loss, aux), grads = jax.value_and_grad(forward, has_aux=True)(params, batch, key, noise_std)
         updates, opt_state = tx.update(grads, opt_state, params)
         # Scaling the final step is scaling the learning rate (Adam's moments do not see it), and
@@ -272,9 +239,6 @@ def make_steps(graphdef: nnx.GraphDef, config: TrainConfig):
         weight = batch.weight * inputs.valid
         output = model(inputs)
         loss, parts = ernet_loss(output, batch.label, batch.refine_labels, model_config, weight)
-        if config.rank_weight:
-            parts = {**parts, "rank": ranking_loss(output.eval_logits, batch.label, batch.group, weight)}
-            loss = loss + config.rank_weight * parts["rank"]
         return loss, (output, parts, weight)
 
     def stats(batch, loss, aux):
@@ -285,8 +249,7 @@ def make_steps(graphdef: nnx.GraphDef, config: TrainConfig):
         output, _, weight = aux
         return {"prob": output.eval_prob, "refine_prob": output.refine_prob, "weight": weight}
 
-    return jit_steps(make_optimizer(config), forward, stats, model_config.noise_std, per_sample,
-                     swapped_fingers if config.swap_fingers else None)
+    return jit_steps(make_optimizer(config), forward, stats, model_config.noise_std, per_sample)
 
 
 def summarise(stats: Mapping[str, Any]) -> dict[str, Any]:
@@ -304,7 +267,6 @@ def summarise(stats: Mapping[str, Any]) -> dict[str, Any]:
         "loss": ratio(s["loss"], n),
         "eval_loss": ratio(s["eval_loss"], n),
         "refine_loss": ratio(s["refine_loss"], n) if "refine_loss" in s else None,
-        **({"rank_loss": ratio(s["rank_loss"], n)} if "rank_loss" in s else {}),
         "accuracy": ratio(s["correct"], n),
         "precision": ratio(s["tp"], s["tp"] + s["fp"]),
         "recall": ratio(s["tp"], s["tp"] + s["fn"]),
@@ -540,7 +502,7 @@ def _checkpoint_manager(run_dir: str):
     return ocp.CheckpointManager(os.path.abspath(os.path.join(run_dir, CHECKPOINT_DIR)), options=options)
 
 
-EVAL_FIELDS = (*dataset.TRAIN_FIELDS, "source", "outcome")  # what the judgement metrics need
+EVAL_FIELDS = (*dataset.TRAIN_FIELDS, "source", "outcome", "scene_seed")  # what the judgement metrics need
 
 
 def _load_data(data: str | os.PathLike | Sequence[str | os.PathLike] | Mapping[str, np.ndarray], config: TrainConfig):
@@ -669,10 +631,7 @@ def run_training(
         for epoch in range(start, config.epochs):
             epoch_key = jax.random.fold_in(base_key, epoch)
             rng = np.random.default_rng([config.seed, epoch])
-            if config.rank_weight:
-                batches = dataset.scene_batch_indices(train_set["scene_seed"], config.batch_size, rng)
-            else:
-                batches = dataset.batch_indices(n_train, config.batch_size, rng)
+            batches = dataset.batch_indices(n_train, config.batch_size, rng)
             loader = Prefetcher(train_set, batches, config.prefetch, placement.batch)
             totals = None
             bar = tqdm(total=n_batches, desc=f"epoch {epoch + 1}/{config.epochs}", disable=not progress, leave=False)

@@ -370,21 +370,16 @@ def hand_boxes(spec: GripperSpec, width, margin: float = 0.0, sweep: float = 0.0
     return right, left, palm
 
 
-def hand_samples(spec: GripperSpec, width, sweep: float = 0.0, step: float = 0.005, closing: bool = False) -> jax.Array:
+def hand_samples(spec: GripperSpec, width, sweep: float = 0.0, step: float = 0.005) -> jax.Array:
     """Points filling the open hand (`hand_boxes`: both fingers and the palm, swept back by `sweep` along
     -z), gripper frame: width [...] -> [..., P, 3], a grid on each box with spacing <= `step` along
-    every axis, its faces included. closing: also the closing region between the fingers (`closing_box`),
-    the space the fingers sweep through as they close: whatever lies there besides the target, a finger
-    meets. P depends on the spec, sweep, step and closing only (the width moves or stretches the grids,
-    it does not resize them), so a batch of widths has one shape."""
+    every axis, its faces included. P depends on the spec, sweep and step only (the width moves or
+    stretches the grids, it does not resize them), so a batch of widths has one shape."""
     if not step > 0.0:
         raise ValueError(f"step must be > 0 metres, got {step}")
     w = jnp.asarray(width, jnp.float32)[..., None]  # [..., 1]
-    # (box at this width, box that sets the grid's counts): a finger keeps its size at any width; the
-    # closing region is as wide as the opening, so its grid is sized for the widest one.
+    # (box at this width, box that sets the grid's counts): a finger keeps its size at any width.
     boxes = list(zip(hand_boxes(spec, w, 0.0, sweep), hand_boxes(spec, 0.0, 0.0, sweep)))
-    if closing:
-        boxes.append((closing_box(spec, w), closing_box(spec, spec.max_opening)))
     parts = []
     for (lo, hi), (lo0, hi0) in boxes:
         counts = [max(2, int(np.ceil((b - a) / step - 1e-6)) + 1) for a, b in zip(lo0, hi0)]
@@ -393,17 +388,6 @@ def hand_samples(spec: GripperSpec, width, sweep: float = 0.0, step: float = 0.0
         lo_, hi_ = corner(lo), corner(hi)  # [..., 1, 3]
         parts.append(lo_ + jnp.asarray(unit, jnp.float32) * (hi_ - lo_))
     return jnp.concatenate(parts, -2)
-
-
-def swap_fingers_local(local: jax.Array) -> jax.Array:
-    """Gripper-frame points [..., 3] of a grasp as its twin with the fingers swapped sees them: the pose
-    turned 180 degrees about the approach axis z, i.e. (x, y, z) -> (-x, -y, z). A parallel-jaw grasp
-    and its twin are one physical grasp (the same closing line, width, depth and approach; the
-    refinement variants, turns about z and a deepening along it, map to the same variants), so a
-    scorer should judge both alike; the hand's regions (`hand_boxes`, `closing_box`, the enlarged
-    region) are symmetric under it."""
-    local = jnp.asarray(local)
-    return local * jnp.asarray([-1.0, -1.0, 1.0], local.dtype)
 
 
 def in_box(x: jax.Array, y: jax.Array, z: jax.Array, box: AxisBox) -> jax.Array:
@@ -527,20 +511,6 @@ def closing_centre(poses, spec: GripperSpec, xp=jnp):
     poses [..., 4, 4] -> [..., 3]. xp: jnp, or np on the host."""
     poses = xp.asarray(poses)
     return poses[..., :3, 3] + 0.5 * spec.finger_length * poses[..., :3, 2]
-
-
-def lever_arm(poses, points, spec: GripperSpec, xp=jnp):
-    """How far each point lies from its grasp's closing line across the finger width: poses [M, 4, 4],
-    points [M, 3] (e.g. the target cloud's centroid) -> [M] metres, |(point - centre) . y| with centre
-    the closing region's centre (origin + finger_length / 2 along z) and y the finger-width axis.
-
-    A parallel jaw resists a twist about its closing axis (x) only by friction at two small contacts;
-    the weight of an object held off its centre along y (and a push on it) makes that twist, which is
-    how most grasps that drop under the trial's disturbance fail. xp: jnp, or np on the host."""
-    poses, points = xp.asarray(poses), xp.asarray(points)
-    if poses.ndim != 3 or poses.shape[-2:] != (4, 4) or points.shape != (poses.shape[0], 3):
-        raise ValueError(f"poses and points must have shapes [M, 4, 4] and [M, 3], got {poses.shape} and {points.shape}")
-    return xp.abs(xp.sum((points - closing_centre(poses, spec, xp)) * poses[:, :3, 1], axis=-1))
 
 
 # A grasp this close to one that failed is the same grasp: the closing-region centres within

@@ -362,7 +362,7 @@ def _scene_collisions(poses, widths, scene_points, scene_mask, spec: GripperSpec
 
 def fit_collisions(poses, widths, owner, fits: Superquadric, fit_mask, spec: GripperSpec = GripperSpec(),
                    margin: float = 0.002, sweep: float = 0.05, step: float = 0.006, nearest: int = 4,
-                   chunk: int | None = 64, pair_mask=None, closing: bool = False) -> jax.Array:
+                   chunk: int | None = 64, pair_mask=None) -> jax.Array:
     """Whether the hand meets another object's fitted superquadric: the neighbours' hidden sides.
 
     Filter (iv) sees a neighbour's observed points and, with `shadow_depth`, the space they hide along
@@ -375,8 +375,7 @@ def fit_collisions(poses, widths, owner, fits: Superquadric, fit_mask, spec: Gri
     bool [O] (False: no fit, padding); pair_mask bool [O, O] or None: pair_mask[t, o] False leaves fit o
     out for the candidates of object t (`neighbours.obstacle_fits`: a fit that holds t's own observed
     points is wrong where t's grasps go). The hand (fingers and palm, open to the width, swept back by
-    `sweep` along the approach: `gripper.hand_samples`, grid spacing `step`; with `closing`, also the
-    closing region the fingers sweep as they close) meets a fit when one of
+    `sweep` along the approach: `gripper.hand_samples`, grid spacing `step`) meets a fit when one of
     its sample points lies inside the fit with every semi-axis grown by `margin` metres. Each hand is
     tested against the `nearest` fits whose bounding spheres come closest to its own (a fit farther
     than that cannot meet it; more than `nearest` fits within reach of one hand are rare: the test is
@@ -406,7 +405,7 @@ def fit_collisions(poses, widths, owner, fits: Superquadric, fit_mask, spec: Gri
         # p_local = R_o^T (R_k p + t_k - t_o): one affine map per (candidate, fit).
         rot = jnp.einsum("ktji,kjl->ktil", rot_o, p[:, :3, :3])
         shift = jnp.einsum("ktji,ktj->kti", rot_o, p[:, None, :3, 3] - t_o)
-        local = jnp.einsum("ktil,kpl->ktpi", rot, hand_samples(spec, w, sweep, step, closing)) + shift[:, :, None, :]
+        local = jnp.einsum("ktil,kpl->ktpi", rot, hand_samples(spec, w, sweep, step)) + shift[:, :, None, :]
         inside = jnp.any(log_implicit_local(local, grown[pick], fits.epsilon[pick]) < 0.0, -1)  # [k, t]
         return jnp.any(inside & near, -1)
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
@@ -35,20 +36,12 @@ class MatchConfig:
     K2: int = 5
     eps_tol: float = 0.3  # eps2 within this of 0 or 2 ...
     axis_tol: float = 0.1  # ... and |a_x - a_y| / max below this: the dual parameterisation exists
-    # Also match the query's fitted axes relabelled (which one is z, x and y): EMS may call any axis of
-    # a single view's fit z, while the database's fits call the primitive's height z. Each relabelling
-    # keeps the fitted epsilon (exact only where eps1 = eps2), so it is a matching key, not an
-    # equivalent shape; the top K2 are taken over all of them. False: the paper's matching.
-    relabel_axes: bool = False
-    # Instead, keep the paper's top K2 and append the best `relabel_extra` matches of the other five
-    # labellings after them (so no match of the paper's is displaced). 0: none.
-    relabel_extra: int = 0
+    # Options measured and not adopted (docs/experiments.md): saved configs holding their old defaults still load.
+    RETIRED_FIELDS: ClassVar[dict] = {"relabel_axes": False, "relabel_extra": 0}
 
     def __post_init__(self):
-        if self.K1 < 1 or self.K2 < 1 or self.relabel_extra < 0:
-            raise ValueError(f"K1 and K2 must be >= 1 and relabel_extra >= 0, got {self.K1}, {self.K2}, {self.relabel_extra}")
-        if self.relabel_axes and self.relabel_extra:
-            raise ValueError("relabel_axes (top K2 over all labellings) and relabel_extra (extra matches) exclude each other")
+        if self.K1 < 1 or self.K2 < 1:
+            raise ValueError(f"K1 and K2 must be >= 1, got {self.K1} and {self.K2}")
 
 
 @jax.tree_util.register_dataclass
@@ -86,13 +79,6 @@ class MatchResult:
     d_shape: jax.Array
     query_param: jax.Array
     db_param: jax.Array
-    relabel: jax.Array | None = None  # [Q, K2] row of RELABELLINGS applied to the query (None: identity)
-
-
-# Axis relabellings of a fit (`MatchConfig.relabel_axes`): new axis i is old axis PERM[r][i]; the odd
-# permutations flip the new z so that the frame stays right-handed (a superquadric is symmetric in it).
-RELABELLINGS = ((0, 1, 2), (1, 2, 0), (2, 0, 1), (1, 0, 2), (0, 2, 1), (2, 1, 0))
-_RELABEL_SIGN = ((1, 1, 1), (1, 1, 1), (1, 1, 1), (1, 1, -1), (1, 1, -1), (1, 1, -1))
 
 
 def parameterisations(scale: jax.Array, epsilon: jax.Array, cfg: MatchConfig = MatchConfig()):
@@ -137,28 +123,6 @@ def _best_pair(dist: jax.Array, q_valid: jax.Array, c_valid: jax.Array) -> tuple
 @functools.partial(jax.jit, static_argnames="cfg")
 def match(query_scale: jax.Array, query_epsilon: jax.Array, db: MatchDB, cfg: MatchConfig = MatchConfig()) -> MatchResult:
     """Top-K2 database primitives for each query: query_scale [Q, 3], query_epsilon [Q, 2] -> MatchResult."""
-    if not (cfg.relabel_axes or cfg.relabel_extra):
-        return _match(query_scale, query_epsilon, db, cfg)
-    first = 0 if cfg.relabel_axes else 1  # "extra": the identity's matches are the paper's, kept apart
-    labellings = jnp.asarray(RELABELLINGS[first:])
-    q, r = query_scale.shape[0], len(labellings)
-    relabelled = query_scale[:, labellings].reshape(q * r, 3)  # [Q * R, 3]
-    each = _match(relabelled, jnp.repeat(query_epsilon, r, 0), db, cfg)
-    k2 = each.index.shape[1]
-    flat = lambda x: x.reshape(q, r * k2)
-    keep = k2 if cfg.relabel_axes else min(cfg.relabel_extra, r * k2)
-    neg_s, order = jax.lax.top_k(-flat(each.score), keep)  # the best over the relabellings
-    take = lambda x: jnp.take_along_axis(flat(x), order, 1)
-    best = MatchResult(take(each.index), -neg_s, take(each.d_shape), take(each.query_param), take(each.db_param),
-                       (order // k2 + first).astype(jnp.int32))
-    if cfg.relabel_axes:
-        return best
-    paper = _match(query_scale, query_epsilon, db, cfg)
-    paper = dataclasses.replace(paper, relabel=jnp.zeros_like(paper.index, jnp.int32))
-    return jax.tree.map(lambda a, b: jnp.concatenate([a, b], 1), paper, best)
-
-
-def _match(query_scale: jax.Array, query_epsilon: jax.Array, db: MatchDB, cfg: MatchConfig) -> MatchResult:
     qs, qe, qv = parameterisations(query_scale, query_epsilon, cfg)  # [Q, 2, ...]
     k1 = min(cfg.K1, db.scale.shape[0])
     k2 = min(cfg.K2, k1)
@@ -187,12 +151,6 @@ def transfer_grasps(query: Superquadric, result: MatchResult, db: MatchDB) -> tu
     quarter = jnp.pi / 4
     turn = rot_z(quarter * (result.query_param - result.db_param).astype(jnp.float32))  # [Q, K2, 3, 3]
     rotation = query.rotation[:, None] @ turn
-    if result.relabel is not None:  # the relabelled fit's frame: its axis i is the fit's axis PERM[i]
-        perm = jnp.asarray(RELABELLINGS)[result.relabel]  # [Q, K2, 3]
-        sign = jnp.asarray(_RELABEL_SIGN, jnp.float32)[result.relabel]
-        axes = jnp.take_along_axis(jnp.broadcast_to(query.rotation[:, None], perm.shape[:2] + (3, 3)),
-                                   perm[..., None, :], -1) * sign[..., None, :]
-        rotation = axes @ turn
     t_q = pose_matrix(rotation, jnp.broadcast_to(query.translation[:, None], rotation.shape[:-1]))
     poses = t_q[:, :, None] @ db.grasps[result.index]
     return poses, db.widths[result.index], db.mask[result.index]

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
@@ -35,23 +36,16 @@ from sgjax.stage1.pipeline import ROW_FIELDS, Candidates
 class NeighbourFitConfig:
     """margin: each fit's semi-axes grown by this (metres) before the test; step: the hand's sample
     grid spacing (metres); nearest: fits tested per hand, those whose bounding spheres come closest;
-    object_slots: fits padded to this many (more objects: the next power of two); in_fallback: in the
-    planner's second plan (`PlannerConfig.fallback_filter`): "prefer" (default) plans with the candidates
-    that pass the test and, when they give no grasp, with all of them, so the second plan finds a grasp
-    whenever it would without the test (it plans for the objects the first plan found nothing for, and
-    there a fit is a guess that may cover the space a good grasp needs); False does without it there, as
-    without the other filters beyond the paper's (the default before 2026-12-05); True removes the
-    candidates there as in the first plan (it starved objects: docs/benchmark.md). Why "prefer": in dense
-    clutter of unseen objects the second plan's grasps met neighbours' hidden sides (23 of 70 approach
-    collisions over 70 scenes); with the preference approach collisions fell 153 -> 140 over 160 dense
-    scenes, GSR / TSR +0.2 / +0.3 points, and every Table I cell stayed within a grasp (docs/benchmark.md,
-    "The second plan's grasps and the neighbours' fits")."""
+    object_slots: fits padded to this many (more objects: the next power of two). The planner removes
+    the candidates that meet a fit in its first plan and prefers those that do not in its second
+    (`sgjax.planner.PlannerConfig.neighbour_fits`)."""
 
     margin: float = 0.002
     step: float = 0.006
     nearest: int = 4
     object_slots: int = 32
-    in_fallback: bool | str = "prefer"
+    # Options measured and not adopted (docs/experiments.md): saved configs holding their old defaults still load.
+    RETIRED_FIELDS: ClassVar[dict] = {"in_fallback": "prefer", "closing": False}
     # A fit holding more than this fraction of another object's observed points (grown by the margin) is
     # no obstacle for that object's grasps: it is wrong where they go. Single-view fits over-reach into
     # hidden space, and with the footprint (`Stage1Config.footprint`) an object lying on another is fitted
@@ -60,17 +54,12 @@ class NeighbourFitConfig:
     # points tested (a seeded subsample).
     max_overlap: float = 0.02
     overlap_points: int = 256
-    # Also the closing region between the fingers: a neighbour there (hidden under or behind the target,
-    # where filter (iv) sees no point of it) is what a closing finger meets. False: fingers and palm only.
-    closing: bool = False
 
     def __post_init__(self):
         if not (np.isfinite(self.margin) and self.margin >= 0.0):
             raise ValueError(f"margin must be a finite number >= 0 (metres), got {self.margin}")
         if not self.step > 0.0:
             raise ValueError(f"step must be > 0 metres, got {self.step}")
-        if self.in_fallback not in (False, True, "prefer"):
-            raise ValueError(f"in_fallback must be False, True or 'prefer', got {self.in_fallback!r}")
         if not 0.0 <= self.max_overlap <= 1.0:
             raise ValueError(f"max_overlap must be a fraction in [0, 1], got {self.max_overlap}")
         if self.nearest < 1 or self.object_slots < 1 or self.overlap_points < 1:
@@ -130,7 +119,7 @@ def obstacle_fits(candidates: list[Candidates], clouds: list, config: NeighbourF
 @functools.partial(jax.jit, static_argnames=("spec", "config", "sweep"))
 def _hits(poses, widths, owner, fits, mask, pairs, spec: GripperSpec, config: NeighbourFitConfig, sweep: float):
     return fit_collisions(poses, widths, owner, fits, mask, spec, config.margin, sweep, config.step, config.nearest,
-                          pair_mask=pairs, closing=config.closing)
+                          pair_mask=pairs)
 
 
 def fit_hits(poses, widths, owner, fits: Superquadric, mask, spec: GripperSpec, config: NeighbourFitConfig,

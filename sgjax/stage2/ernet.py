@@ -416,21 +416,6 @@ def refinement_loss(logits: jax.Array, labels: jax.Array, weights: jax.Array | N
     return _weighted_mean(per_sample, weights)
 
 
-def ranking_loss(logits: jax.Array, labels: jax.Array, groups: jax.Array, weights: jax.Array | None = None) -> jax.Array:
-    """Within-scene pairwise ranking on the evaluation logits (RankNet): for every pair (i, j) of one
-    group with labels 1 and 0, softplus(-(s_i - s_j)) where s = logit(success) - logit(failure); the mean
-    over such pairs (0 when there is none). The planner executes a scene's top-scored grasp, so what
-    matters there is the order of one scene's candidates, which the per-sample L_e only asks for indirectly.
-
-    logits[B, 2], labels int[B] in {0, 1}, groups int[B] (equal within a scene), weights[B] (0: excluded) -> scalar."""
-    s = logits[:, 1] - logits[:, 0]
-    w = jnp.ones_like(s) if weights is None else jnp.asarray(weights, s.dtype)
-    y = jnp.asarray(labels) == 1
-    pair = (groups[:, None] == groups[None, :]) & y[:, None] & ~y[None, :]
-    pair_weight = jnp.where(pair, w[:, None] * w[None, :], 0.0)
-    return _weighted_mean(jax.nn.softplus(-(s[:, None] - s[None, :])), pair_weight)
-
-
 def ernet_loss(
     output: ERNetOutput,
     labels: jax.Array,
@@ -609,26 +594,13 @@ def as_model(model) -> ERNet:
     return checkpoint.as_model(model, ERNet, load_model, load_default_model, "an ERNet, a `sgjax train` run directory")
 
 
-PAPER_JUDGE = "paper"  # `as_judge`'s name for the shipped paper-size network
-
-
 def load_paper_model() -> ERNet:
     """The shipped paper-size E-RNet (`sgjax/models/ernet_paper/`, `ERNetConfig.paper`, swept input),
-    trained on a GPU; on a CPU it takes seconds per 512 candidates, so it serves as a judge of a few
-    finalists (`Planner(judge="paper")`). Raises FileNotFoundError naming the path when it is missing."""
+    trained on a GPU (on a CPU it takes seconds per 512 candidates): `Planner(model=load_paper_model())`.
+    Raises FileNotFoundError naming the path when it is missing."""
     path = checkpoint.ERNET_PAPER_DIR
     return checkpoint.load_default(
         path, load_model,
         f"no paper-size E-RNet checkpoint at {path}: train one with `sgjax train --model paper --hand-points 32 "
         "--data DIR --out RUN_DIR` (a GPU: ~25 h on 2 CPU cores) and pass the run directory instead",
     )
-
-
-def as_judge(judge) -> ERNet | None:
-    """A judge network (`Planner(judge=)`): None -> None, "paper" -> the shipped paper-size E-RNet
-    (`load_paper_model`; a run directory named so is passed as "./paper"), else as `as_model`."""
-    if judge is None:
-        return None
-    if isinstance(judge, str) and judge == PAPER_JUDGE:
-        return load_paper_model()
-    return as_model(judge)

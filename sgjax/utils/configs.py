@@ -24,17 +24,33 @@ def _hints(cls: type) -> dict[str, Any]:
 def from_dict(cls: type[T], data: typing.Mapping[str, Any], where: str | None = None) -> T:
     """The dataclass `cls` from `data` (as `dataclasses.asdict(cls(...))` gives it, possibly through JSON:
     lists become tuples again, nested dataclass fields are rebuilt from their dicts). Fields missing
-    from `data` take their defaults (a config saved before the field existed); a key `cls` does not
-    have raises ValueError naming it, as does a value of the wrong kind for a nested config."""
+    from `data` take their defaults (a config saved before the field existed); a field the class has
+    retired (its `RETIRED_FIELDS`: name -> the value that behaved as today's code does) is dropped when
+    it holds that value, and refused by name otherwise (today's code cannot do what it asked); any other
+    key `cls` does not have raises ValueError naming it, as does a value of the wrong kind for a nested
+    config."""
     where = where or cls.__name__
     if not isinstance(data, typing.Mapping):
         raise ValueError(f"{where}: expected a mapping of fields, got {type(data).__name__}")
+    data = _without_retired(cls, data, where)
     fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
     unknown = sorted(set(data) - set(fields))
     if unknown:
         raise ValueError(f"{where}: unknown fields {unknown}")
     hints = _hints(cls)
     return cls(**{name: _value(hints[name], data[name], f"{where}.{name}") for name in fields if name in data})
+
+
+def _without_retired(cls: type, data: typing.Mapping[str, Any], where: str) -> typing.Mapping[str, Any]:
+    """data without the fields `cls.RETIRED_FIELDS` names, each checked to hold its retired value."""
+    retired = getattr(cls, "RETIRED_FIELDS", {})
+    if not retired or not set(data) & set(retired):
+        return data
+    for name in set(data) & set(retired):
+        if _tuples(data[name]) != retired[name]:
+            raise ValueError(f"{where}.{name} = {data[name]!r}: this option was retired (docs/experiments.md); "
+                             f"only {retired[name]!r}, today's behaviour, can be read back")
+    return {k: v for k, v in data.items() if k not in retired}
 
 
 def _value(tp: Any, value: Any, where: str) -> Any:
