@@ -1,0 +1,137 @@
+"""A real frame's front end (`sgjax.perception`): calibration files, depth images, back-projection and
+the table plane, against a synthetic pinhole camera looking down at a table with a box on it."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from sgjax.perception import Intrinsics, back_project, fit_table, read_depth, read_extrinsics, read_intrinsics, to_world
+
+K = Intrinsics(fx=600.0, fy=610.0, cx=159.5, cy=119.5, width=320, height=240)
+
+
+def tilted_camera():
+    """A camera 0.6 m above a table z = 0, looking down and 30 deg forward: camera-to-world [4, 4]."""
+    tilt = np.deg2rad(30.0)
+    # Camera axes in the world: x right, y down (in the image), z forward (the viewing ray).
+    z = np.array([0.0, np.sin(tilt), -np.cos(tilt)])
+    x = np.array([1.0, 0.0, 0.0])
+    y = np.cross(z, x)
+    T = np.eye(4)
+    T[:3, :3] = np.stack([x, y, z], axis=1)
+    T[:3, 3] = (0.0, -0.3, 0.6)
+    return T
+
+
+def render(T, box=((0.0, 0.05, 0.0), (0.06, 0.04, 0.05))):
+    """The depth image [H, W] (metres) of the table z = 0 and an axis-aligned box (centre, half sizes) on it."""
+    v, u = np.mgrid[0:K.height, 0:K.width]
+    rays = np.stack([(u - K.cx) / K.fx, (v - K.cy) / K.fy, np.ones_like(u, float)], -1)  # camera frame, z = 1
+    world = rays @ T[:3, :3].T  # ray directions in the world
+    origin = T[:3, 3]
+    t_table = -origin[2] / world[..., 2]
+    depth = np.where(t_table > 0, t_table, np.inf)
+    centre, half = np.asarray(box[0]), np.asarray(box[1])
+    lo, hi = centre - half + (0, 0, half[2]), centre + half + (0, 0, half[2])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1, t2 = (lo - origin) / world, (hi - origin) / world
+    near, far = np.minimum(t1, t2).max(-1), np.maximum(t1, t2).min(-1)
+    hit = (near <= far) & (near > 0)
+    return np.where(hit, np.minimum(depth, near), depth)  # t along a z = 1 ray is the depth
+
+
+def test_back_projection_inverts_the_pinhole_model():
+    depth = np.zeros((K.height, K.width), np.float32)
+    depth[10, 20], depth[200, 300], depth[119, 159] = 0.5, 1.25, 2.0
+    points, pixels = back_project(depth, K)
+    assert len(points) == 3 and pixels.tolist() == [[10, 20], [119, 159], [200, 300]]
+    u = K.fx * points[:, 0] / points[:, 2] + K.cx
+    v = K.fy * points[:, 1] / points[:, 2] + K.cy
+    np.testing.assert_allclose(np.c_[v, u], pixels, atol=1e-9)
+    np.testing.assert_allclose(points[:, 2], [0.5, 2.0, 1.25])
+    assert len(back_project(depth, K, max_depth=1.5)[0]) == 2
+    with pytest.raises(ValueError, match="the depth image is 20x10 pixels but the intrinsics are for 320x240"):
+        back_project(np.ones((10, 20)), K)
+
+
+def test_depth_files_read_in_metres(tmp_path):
+    metres = render(tilted_camera())
+    metres = np.where(np.isfinite(metres) & (metres < 3.0), metres, 0.0)
+    png = tmp_path / "depth.png"
+    Image.fromarray(np.round(metres * 1000).astype(np.uint16)).save(png)
+    np.testing.assert_allclose(read_depth(png), metres, atol=5e-4 + 1e-6)
+    np.testing.assert_allclose(read_depth(png, depth_scale=4000.0), read_depth(png) / 4, atol=1e-6)
+    np.save(tmp_path / "depth.npy", np.where(metres > 0, metres, np.nan))  # NaN: no depth
+    np.testing.assert_allclose(read_depth(tmp_path / "depth.npy"), metres, atol=1e-6)
+    np.savez(tmp_path / "frame.npz", depth=metres, rgb=np.zeros((2, 2, 3)))
+    np.testing.assert_allclose(read_depth(tmp_path / "frame.npz"), metres, atol=1e-6)
+    np.save(tmp_path / "bad.npy", -metres)
+    with pytest.raises(ValueError, match="negative depths"):
+        read_depth(tmp_path / "bad.npy")
+    with pytest.raises(ValueError, match="depth_scale must be a number > 0"):
+        read_depth(png, depth_scale=0)
+    with pytest.raises(FileNotFoundError, match="no such depth image"):
+        read_depth(tmp_path / "none.png")
+
+
+def test_intrinsics_from_every_format(tmp_path):
+    (tmp_path / "k.json").write_text(json.dumps({"K": K.K.tolist(), "width": 320, "height": 240}))
+    (tmp_path / "f.json").write_text(json.dumps({"fx": 600, "fy": 610, "cx": 159.5, "cy": 119.5}))
+    (tmp_path / "ros.yaml").write_text(
+        "image_width: 320\nimage_height: 240\ncamera_name: rs\ncamera_matrix:\n  rows: 3\n  cols: 3\n"
+        f"  data: {K.K.reshape(-1).tolist()}\ndistortion_model: plumb_bob\n")
+    np.save(tmp_path / "k.npy", K.K)
+    assert read_intrinsics(tmp_path / "k.json") == K == read_intrinsics(tmp_path / "ros.yaml")
+    assert read_intrinsics(tmp_path / "f.json") == Intrinsics(600, 610, 159.5, 119.5)
+    assert read_intrinsics(tmp_path / "k.npy").K.tolist() == K.K.tolist()
+    (tmp_path / "miss.json").write_text(json.dumps({"fx": 600, "cx": 1}))
+    with pytest.raises(ValueError, match=r"miss.json: missing field\(s\) fy, cy"):
+        read_intrinsics(tmp_path / "miss.json")
+    (tmp_path / "neg.json").write_text(json.dumps({"fx": -1, "fy": 1, "cx": 1, "cy": 1}))
+    with pytest.raises(ValueError, match="neg.json: intrinsics: fx and fy must be > 0"):
+        read_intrinsics(tmp_path / "neg.json")
+    (tmp_path / "other.yaml").write_text("foo: 1\n")
+    with pytest.raises(ValueError, match="no 'camera_matrix'"):
+        read_intrinsics(tmp_path / "other.yaml")
+
+
+def test_extrinsics_are_checked_rigid(tmp_path):
+    T = tilted_camera()
+    (tmp_path / "t.json").write_text(json.dumps(T.tolist()))
+    np.save(tmp_path / "t.npy", T)
+    np.testing.assert_array_equal(read_extrinsics(tmp_path / "t.json"), read_extrinsics(tmp_path / "t.npy"))
+    bad = T.copy()
+    bad[:3, :3] *= 1.1
+    np.save(tmp_path / "scaled.npy", bad)
+    with pytest.raises(ValueError, match="not a proper rotation"):
+        read_extrinsics(tmp_path / "scaled.npy")
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_the_table_is_found_with_its_normal_towards_the_camera(seed):
+    """In the camera frame (no extrinsics) the fit's plane is the true table's, seen from the camera,
+    with sensor noise and a box on it; with the extrinsics it is z = 0, normal up."""
+    T = tilted_camera()
+    depth = render(T)
+    depth = np.where(np.isfinite(depth) & (depth < 2.0), depth, 0.0)
+    depth = depth + np.random.default_rng(seed).normal(0, 0.001, depth.shape) * (depth > 0)
+    points, _ = back_project(depth, K)
+    table = fit_table(points, seed=seed)
+    # The true table in the camera frame: world z = 0 -> n_c = R^T e_z, d = t_z.
+    truth = np.r_[T[:3, :3].T @ (0, 0, 1.0), T[2, 3]]
+    assert np.degrees(np.arccos(np.clip(table.normal @ truth[:3], -1, 1))) < 1.0
+    assert abs(table.plane[3] - truth[3]) < 0.003 and table.rms < 0.0025
+    world = to_world(points, T)
+    on_box = world[:, 2] > 0.01
+    assert on_box.sum() > 500 and len(points) > 0.9 * K.width * K.height  # the box and the table in view
+    assert not table.inliers[on_box].any() and table.inliers[world[:, 2] < 0.002].mean() > 0.95
+    np.testing.assert_allclose(table.height(points)[on_box], world[on_box, 2], atol=0.006)
+    up = fit_table(world, viewpoint=T[:3, 3], seed=seed, max_tilt_deg=10.0, up=(0, 0, 1))
+    np.testing.assert_allclose(up.normal, (0, 0, 1), atol=0.01)
+    assert fit_table(points, seed=seed).plane == table.plane  # the same seed, the same plane
+    with pytest.raises(ValueError, match="at least 3 finite points"):
+        fit_table(points[:2])
