@@ -27,28 +27,32 @@ class TablePlane:
 
 
 def fit_table(points: np.ndarray, viewpoint=(0.0, 0.0, 0.0), distance: float = 0.005, iterations: int = 500,
-              seed: int = 0, max_tilt_deg: float | None = None, up=None) -> TablePlane:
+              seed: int = 0, max_tilt_deg: float | None = None, up=None, sample: int = 20000) -> TablePlane:
     """RANSAC: the plane through three random points that has the most points within `distance` metres
     (`iterations` tries, seeded), refined by least squares on those inliers (twice), its normal turned
     towards `viewpoint` (the camera's position in the points' frame; the origin in the camera frame).
     The largest plane in view is taken to be the table: crop the cloud to the workspace first when a
     wall or floor could outsize it. max_tilt_deg with up [3]: only planes whose normal lies within that
-    angle of `up` (e.g. world z with extrinsics) count. points [N, 3], N >= 3 -> TablePlane."""
+    angle of `up` (e.g. world z with extrinsics) count. The tries are scored on a seeded subsample of
+    `sample` points (a VGA frame holds 300k), the refinement and the inliers use them all.
+    points [N, 3], N >= 3 -> TablePlane."""
     pts = np.asarray(points, np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise ValueError(f"points must be [N, 3], got shape {pts.shape}")
     pts = pts[np.all(np.isfinite(pts), axis=1)]
     if len(pts) < 3:
         raise ValueError(f"a table plane needs at least 3 finite points, got {len(pts)}")
-    if not distance > 0 or iterations < 1:
-        raise ValueError(f"distance must be > 0 metres and iterations >= 1, got {distance} and {iterations}")
+    if not distance > 0 or iterations < 1 or sample < 3:
+        raise ValueError(f"distance must be > 0 metres, iterations >= 1 and sample >= 3, got {distance}, {iterations} "
+                         f"and {sample}")
     view = np.asarray(viewpoint, np.float64)
     if up is not None:
         up = np.asarray(up, np.float64) / np.linalg.norm(up)
     min_cos = None if max_tilt_deg is None or up is None else np.cos(np.deg2rad(max_tilt_deg))
     rng = np.random.default_rng(seed)
-    triples = rng.integers(0, len(pts), size=(iterations, 3))
-    a, b, c = pts[triples[:, 0]], pts[triples[:, 1]], pts[triples[:, 2]]
+    scored = pts if len(pts) <= sample else pts[rng.choice(len(pts), sample, replace=False)]
+    triples = rng.integers(0, len(scored), size=(iterations, 3))
+    a, b, c = scored[triples[:, 0]], scored[triples[:, 1]], scored[triples[:, 2]]
     normals = np.cross(b - a, c - a)
     norms = np.linalg.norm(normals, axis=1)
     ok = norms > 1e-12
@@ -64,7 +68,7 @@ def fit_table(points: np.ndarray, viewpoint=(0.0, 0.0, 0.0), distance: float = 0
         rows = np.flatnonzero(ok[start:start + 64]) + start
         if not len(rows):
             continue
-        counts = np.sum(np.abs(pts @ normals[rows].T + offsets[rows]) <= distance, axis=0)
+        counts = np.sum(np.abs(scored @ normals[rows].T + offsets[rows]) <= distance, axis=0)
         i = int(np.argmax(counts))
         if counts[i] > best_count:
             best, best_count = int(rows[i]), int(counts[i])
