@@ -17,7 +17,7 @@ import dataclasses
 import importlib.util
 from collections.abc import Callable
 
-from eval.protocol import Method, MethodUnavailable
+from eval.protocol import Method, MethodUnavailable, split_preset
 
 __all__ = ["METHODS", "MethodInfo", "MethodUnavailable", "UnknownMethod", "check_method", "make_method", "method_names"]
 
@@ -34,6 +34,7 @@ class MethodInfo:
     options: option names `make_method` accepts for it.
     missing: () -> None when the method can run, else the reason it cannot.
     diagnostic: reads the simulator's ground truth (not a method of the paper).
+    presets: takes a planner preset (`sgjax.presets`) as "name@preset".
     """
 
     name: str
@@ -42,6 +43,7 @@ class MethodInfo:
     options: tuple[str, ...] = ()
     missing: Callable[[], str | None] = lambda: None
     diagnostic: bool = False
+    presets: bool = False
 
     def unavailable_reason(self) -> str | None:
         if self.factory is None:
@@ -120,6 +122,7 @@ METHODS: dict[str, MethodInfo] = {
             _supergrasp(True),
             _PLANNER_OPTIONS,
             _planner_missing,
+            presets=True,
         ),
         MethodInfo(
             "supergrasp-norefine",
@@ -127,6 +130,7 @@ METHODS: dict[str, MethodInfo] = {
             _supergrasp(False),
             _PLANNER_OPTIONS,
             _planner_missing,
+            presets=True,
         ),
         MethodInfo("gpd", "GPD-style geometric baseline: antipodal sampling, ranked by an antipodal score", _gpd, ("config",)),
         MethodInfo(
@@ -171,13 +175,6 @@ def method_names(available_only: bool = False) -> list[str]:
     return [n for n, info in METHODS.items() if not available_only or info.unavailable_reason() is None]
 
 
-def split_preset(name: str) -> tuple[str, str]:
-    """A method name with an optional planner preset, "supergrasp@paper" -> ("supergrasp", "paper");
-    without one the preset is "default" (`sgjax.presets`)."""
-    base, at, preset = name.partition("@")
-    return base, (preset if at else "default")
-
-
 def check_method(name: str, **options) -> MethodInfo:
     """The registry entry of `name` ("method" or "method@preset" for the planner's methods) if it can run
     with `options` (None / False values are ignored).
@@ -190,8 +187,9 @@ def check_method(name: str, **options) -> MethodInfo:
     if info is None:
         raise UnknownMethod(f"unknown method {name!r}: expected one of {', '.join(METHODS)}")
     if preset != "default":
-        if info.factory is None or info.options != _PLANNER_OPTIONS:
-            raise ValueError(f"method {name!r} takes no planner preset (only supergrasp and supergrasp-norefine do)")
+        if not info.presets:
+            takers = ", ".join(n for n, i in METHODS.items() if i.presets)
+            raise ValueError(f"method {name!r} takes no planner preset (only {takers} do)")
         from sgjax import presets
 
         presets.get(preset)  # an unknown name raises, listing the known ones

@@ -67,5 +67,18 @@ def near_grasps(poses, avoid, spec) -> np.ndarray:
     return gripper.near_grasps(poses, avoid, spec, xp=np)
 
 
+def with_preset(method: str, preset: str) -> str:
+    """A method's name under a planner preset (`sgjax.presets`): "supergrasp", "paper" -> "supergrasp@paper";
+    the "default" preset keeps the plain name."""
+    return method if preset == "default" else f"{method}@{preset}"
+
+
+def split_preset(name: str) -> tuple[str, str]:
+    """`with_preset` undone: "supergrasp@paper" -> ("supergrasp", "paper"); without one the preset is
+    "default"."""
+    base, at, preset = name.partition("@")
+    return base, (preset if at else "default")
+
+
 class MethodUnavailable(RuntimeError):
     """The method is registered but cannot run here (not installed, or not written yet)."""

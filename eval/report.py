@@ -102,7 +102,8 @@ def _group(logs: Iterable[Mapping]) -> dict[tuple[str, str, int], list[Mapping]]
 
 
 def _method_order(names: Iterable[str]) -> list[str]:
-    from eval.methods import METHODS, split_preset
+    from eval.methods import METHODS
+    from eval.protocol import split_preset
 
     order = list(METHODS)
     base = lambda n: split_preset(n)[0]  # "supergrasp@paper" sits beside "supergrasp"

@@ -19,7 +19,7 @@ import dataclasses
 
 import numpy as np
 
-from eval.protocol import Decision
+from eval.protocol import Decision, with_preset
 from sgjax.geometry.pointcloud import table_plane
 from sgjax.stage1.memory import Stage1Memory
 
@@ -45,7 +45,7 @@ class PlannerMethod:
         elif preset != "default":
             raise ValueError("give a planner preset or a config, not both")
         self.config = dataclasses.replace(config, use_refinement=use_refinement)
-        self.name = name if preset == "default" else f"{name}@{preset}"
+        self.name = with_preset(name, preset)
         self.planner = Planner(model=model, db=db, config=self.config)
         # Stage 1 of an object whose cloud has not changed since the scene's last plan is not run again
         # (`sgjax.stage1.memory`); the harness starts each scene with `begin_scene`.

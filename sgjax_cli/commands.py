@@ -433,10 +433,11 @@ def _cmd_declutter(args: argparse.Namespace) -> int:
     from eval.benchmark import result_json, run_benchmark
     from eval.declutter import DeclutterConfig
     from eval.methods import MethodUnavailable
+    from eval.protocol import with_preset
     from eval.report import percent
 
     options = {"model": args.model, "small_db": args.small_db}
-    method = args.method if args.preset == "default" else f"{args.method}@{args.preset}"
+    method = with_preset(args.method, args.preset)
     try:
         result = run_benchmark(
             method,

@@ -6,7 +6,8 @@ import dataclasses
 
 import pytest
 
-from eval.methods import UnknownMethod, check_method, make_method, split_preset
+from eval.methods import UnknownMethod, check_method, make_method
+from eval.protocol import split_preset, with_preset
 from sgjax import presets
 from sgjax.planner import FALLBACK_FILTER, PlannerConfig
 from sgjax.stage1.filters import FilterConfig
@@ -31,6 +32,7 @@ def test_default_is_todays_planner_and_paper_is_the_papers():
 def test_benchmark_methods_name_their_preset(small_db):
     assert split_preset("supergrasp") == ("supergrasp", "default")
     assert split_preset("supergrasp-norefine@paper") == ("supergrasp-norefine", "paper")
+    assert with_preset("supergrasp", "default") == "supergrasp" and split_preset(with_preset("gpd", "x")) == ("gpd", "x")
     method = make_method("supergrasp-norefine@paper", db=small_db)
     assert method.name == "supergrasp-norefine@paper"
     config = method.config  # the preset with the benchmark's workspace crop, without the refinement branch

@@ -55,14 +55,19 @@ def _size(value) -> int | None:
     return None if value is None else int(value)
 
 
+def existing_file(path: str | os.PathLike, what: str) -> tuple[str, str]:
+    """path as a string and its lower-case suffix; FileNotFoundError naming `what` when it is no file."""
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"{path}: no such {what}")
+    return path, os.path.splitext(path)[1].lower()
+
+
 def read_intrinsics(path: str | os.PathLike) -> Intrinsics:
     """Intrinsics from a file: JSON `{"K": 3x3}` or `{"fx", "fy", "cx", "cy"}` (optional "width",
     "height"), a ROS CameraInfo YAML (camera_calibration's `camera_matrix: {rows, cols, data}`,
     `image_width`, `image_height`; or a `K` list of 9), or a 3x3 `.npy`. Errors name the file and field."""
-    path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise FileNotFoundError(f"{path}: no such intrinsics file")
-    suffix = os.path.splitext(path)[1].lower()
+    path, suffix = existing_file(path, "intrinsics file")
     try:
         if suffix == ".npy":
             return Intrinsics.from_matrix(np.load(path, allow_pickle=False))
@@ -116,10 +121,7 @@ def _from_ros(data, path: str) -> Intrinsics:
 def read_extrinsics(path: str | os.PathLike) -> np.ndarray:
     """A camera-to-world pose [4, 4] from JSON (a 4x4 list, or {"T": 4x4}) or `.npy`; its rotation must
     be proper (orthonormal, determinant +1, within 1e-3) and its last row (0, 0, 0, 1)."""
-    path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise FileNotFoundError(f"{path}: no such extrinsics file")
-    suffix = os.path.splitext(path)[1].lower()
+    path, suffix = existing_file(path, "extrinsics file")
     if suffix == ".npy":
         T = np.load(path, allow_pickle=False)
     elif suffix == ".json":

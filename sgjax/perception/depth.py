@@ -6,7 +6,7 @@ import os
 
 import numpy as np
 
-from sgjax.perception.camera import Intrinsics
+from sgjax.perception.camera import Intrinsics, existing_file
 
 
 def read_depth(path: str | os.PathLike, depth_scale: float = 1000.0) -> np.ndarray:
@@ -14,12 +14,9 @@ def read_depth(path: str | os.PathLike, depth_scale: float = 1000.0) -> np.ndarr
     (`depth_scale`: its units per metre, 1000 = millimetres, a RealSense's and a Kinect's default) or a
     float `.npy` / `.npz` (its only array, or the one named "depth") already in metres. NaN and inf
     read as no depth; negative depths are refused."""
-    path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise FileNotFoundError(f"{path}: no such depth image")
+    path, suffix = existing_file(path, "depth image")
     if not (np.isfinite(depth_scale) and depth_scale > 0):
         raise ValueError(f"depth_scale must be a number > 0 (units per metre), got {depth_scale}")
-    suffix = os.path.splitext(path)[1].lower()
     if suffix == ".png":
         from PIL import Image
 

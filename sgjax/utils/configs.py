@@ -44,13 +44,14 @@ def from_dict(cls: type[T], data: typing.Mapping[str, Any], where: str | None = 
 def _without_retired(cls: type, data: typing.Mapping[str, Any], where: str) -> typing.Mapping[str, Any]:
     """data without the fields `cls.RETIRED_FIELDS` names, each checked to hold its retired value."""
     retired = getattr(cls, "RETIRED_FIELDS", {})
-    if not retired or not set(data) & set(retired):
+    present = set(data) & set(retired)
+    if not present:
         return data
-    for name in set(data) & set(retired):
+    for name in present:
         if _tuples(data[name]) != retired[name]:
             raise ValueError(f"{where}.{name} = {data[name]!r}: this option was retired (docs/experiments.md); "
                              f"only {retired[name]!r}, today's behaviour, can be read back")
-    return {k: v for k, v in data.items() if k not in retired}
+    return {k: v for k, v in data.items() if k not in present}
 
 
 def _value(tp: Any, value: Any, where: str) -> Any:
