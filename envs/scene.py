@@ -56,6 +56,10 @@ class SceneConfig:
         do not creep; it needs >= ~20 line-search iterations, with 10 resting objects jitter).
     max_hull_vertices: MuJoCo's maxhullvert for the collision hulls (MJX wants small hulls).
     gripper_home: where the gripper waits while no trial runs; gripper_physics: its physical values.
+    surroundings: add what a real camera sees around the table (`add_surroundings`: a floor, a robot
+        stand beside the table and a wall behind it) as camera-only geometry: seen by the depth camera
+        (labelled OTHER), no collisions, no state, so physics and grasp trials are unchanged. Off by
+        default (the table alone, the model as before).
     """
 
     workspace_size: float = 0.5
@@ -77,6 +81,7 @@ class SceneConfig:
     max_hull_vertices: int = 64
     gripper_home: tuple[float, float, float] = (0.0, 0.0, 2.0)
     gripper_physics: gripper_model.GripperPhysics = gripper_model.GripperPhysics()
+    surroundings: bool = dataclasses.field(default=False, repr=False)  # out of the repr: benchmark resume keys stay
 
     def __post_init__(self):
         for name in ("object_friction", "table_friction", "gripper_home"):
@@ -248,6 +253,8 @@ def build_spec(assets: Sequence, config: SceneConfig, gripper: GripperSpec) -> m
         group=TABLE_GROUP,
         rgba=[0.6, 0.5, 0.4, 1.0],
     )
+    if config.surroundings:
+        add_surroundings(spec, config)
 
     meshes: dict[tuple[str, int], str] = {}  # (path, maxhullvert or -1 for visual) -> mesh name
 
@@ -314,6 +321,41 @@ def build_spec(assets: Sequence, config: SceneConfig, gripper: GripperSpec) -> m
     gripper_model.add_gripper(spec, gripper, config.gripper_physics, home=config.gripper_home)
     gripper_model.add_contact_sensors(spec, [object_name(i) for i in range(len(assets))], TABLE_GEOM)
     return spec
+
+
+FLOOR_HEIGHT = -0.75  # the floor under the table (a 0.75 m table), z of its plane
+STAND_SIZE = (0.2, 0.2)  # the robot stand's footprint (x, y)
+STAND_ABOVE_TABLE = 0.25  # its top above the table top
+STAND_GAP = 0.02  # between the table's +x edge and the stand
+STAND_Y = 0.25  # its centre's y: beside the back half of the table, where the default camera sees it
+WALL_GAP = 0.1  # between the table's +y edge and the wall
+WALL_ABOVE_TABLE = 1.0  # the wall reaches from the floor to this far above the table top
+SURROUNDINGS_GEOMS = ("floor", "robot_stand", "wall")
+
+
+def add_surroundings(spec: mujoco.MjSpec, config: SceneConfig) -> None:
+    """Camera-only static geometry around the table (`SceneConfig.surroundings`), named
+    SURROUNDINGS_GEOMS: a floor plane FLOOR_HEIGHT below the table top; a robot stand (a box of
+    STAND_SIZE footprint from the floor to STAND_ABOVE_TABLE above the table top) STAND_GAP off the
+    table's +x edge; a wall WALL_GAP behind the table's +y edge, from the floor to WALL_ABOVE_TABLE.
+    All in VISUAL_GROUP (the camera's rays hit them; `geom_object` maps them to OTHER) with contype =
+    conaffinity = 0 (no contacts) on the world body (no state)."""
+    half_table = 0.5 * config.table_size
+    sx, sy = 0.5 * STAND_SIZE[0], 0.5 * STAND_SIZE[1]
+    stand_half_height = 0.5 * (STAND_ABOVE_TABLE - FLOOR_HEIGHT)
+    wall_half_height = 0.5 * (WALL_ABOVE_TABLE - FLOOR_HEIGHT)
+    wall_half_width = half_table + 1.0
+    wall_half_thickness = 0.01
+    common = {"contype": 0, "conaffinity": 0, "group": VISUAL_GROUP}
+    spec.worldbody.add_geom(name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[3.0, 3.0, 0.1],
+                            pos=[0.0, 0.0, FLOOR_HEIGHT], rgba=[0.5, 0.5, 0.5, 1.0], **common)
+    spec.worldbody.add_geom(name="robot_stand", type=mujoco.mjtGeom.mjGEOM_BOX, size=[sx, sy, stand_half_height],
+                            pos=[half_table + STAND_GAP + sx, STAND_Y, FLOOR_HEIGHT + stand_half_height],
+                            rgba=[0.3, 0.3, 0.3, 1.0], **common)
+    spec.worldbody.add_geom(name="wall", type=mujoco.mjtGeom.mjGEOM_BOX,
+                            size=[wall_half_width, wall_half_thickness, wall_half_height],
+                            pos=[0.0, half_table + WALL_GAP + wall_half_thickness, FLOOR_HEIGHT + wall_half_height],
+                            rgba=[0.9, 0.9, 0.85, 1.0], **common)
 
 
 def build_sensorless_spec(assets: Sequence, config: SceneConfig, gripper: GripperSpec) -> mujoco.MjSpec:

@@ -109,7 +109,7 @@ def run_key(method: str, options: dict, n_objects: int, assets: Sequence, config
     objects = object_set_identity("", assets)["hash"]  # the same names hash the tables show
     # nthread changes speed, not results.
     relevant = dataclasses.replace(config, nthread=0)
-    return {
+    key = {
         "method": method,
         "options": {k: _describe(v) for k, v in sorted(options.items()) if v is not None and v is not False},
         "n_objects": int(n_objects),
@@ -117,6 +117,9 @@ def run_key(method: str, options: dict, n_objects: int, assets: Sequence, config
         "config": hashlib.sha1(repr(relevant).encode()).hexdigest()[:12],
         "method_config": hashlib.sha1(repr(method_config).encode()).hexdigest()[:12],
     }
+    if config.view:  # through a sensor (outside the config's repr, so that exact runs keep their key)
+        key["view"] = config.view
+    return key
 
 
 def _check_key(path: Path, log: dict, key: dict) -> None:
@@ -131,14 +134,14 @@ def _check_key(path: Path, log: dict, key: dict) -> None:
 
 def _warm_up(method: Method, assets, n_objects: int, seed: int, index: int, config: DeclutterConfig) -> float:
     """One discarded plan call on the first scene's observation, so timings exclude JIT compilation."""
-    from envs import camera
 
     start = time.perf_counter()
     scene = declutter.make_benchmark_scene(assets, n_objects, seed, index, config)
-    obs = camera.observe(scene, config.camera)
+    _, points, labels, _ = declutter.observe(scene, config, 0)
     if getattr(method, "uses_ground_truth", False):
         method.set_scene(scene)
-    method.plan(obs.points, obs.point_labels, config.camera.position, 0)
+    if len(points):
+        method.plan(points, labels, config.camera.position, 0)
     return time.perf_counter() - start
 
 
@@ -161,7 +164,8 @@ def run_benchmark(
     method: a registered name (`eval.methods.METHODS`) or a Method instance.
     objects: an object set name or a mesh folder replacing the setting's objects; object_assets: the
         assets themselves (tests). n_objects: objects per scene instead of the setting's.
-    The setting's label in logs and tables is "<object set>-<n>" (e.g. seen-10, tiny-4, mymeshes-10).
+    The setting's label in logs and tables is "<object set>-<n>" (e.g. seen-10, tiny-4, mymeshes-10), and
+    "@<sensor>+<masks>" after it when the method sees the scene through a sensor (seen-10@realsense+clusters).
     pictures: draw the first this many scenes. Raises ValueError / UnknownMethod / MethodUnavailable.
     """
     config = config or DeclutterConfig()
@@ -184,7 +188,7 @@ def run_benchmark(
         identity = object_set_identity(label, assets)
     else:
         assets, label, identity = resolve_objects(chosen, objects, progress)
-    setting_label = f"{label}-{n}"
+    setting_label = f"{label}-{n}" + (f"@{config.view}" if config.view else "")
     # Built before the logs are read: its settings are part of the resume key.
     instance = instance or make_method(name, **options)
     key = run_key(name, options, n, assets, config, getattr(instance, "config", None))

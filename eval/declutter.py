@@ -25,6 +25,15 @@ Choices, documented:
     same memory; a method whose `plan` takes no `avoid` runs without it (logged as "memory": false).
   * Scene seeds are `scene_seed(seed, index)`: the same (setting, seed, index) gives the identical
     scene for every method. Plan seeds are `plan_seed(scene_seed, attempt)`.
+  * Through a sensor (`DeclutterConfig.sensor` other than "exact", or `masks` = "clusters"): the scene
+    also holds what real frames hold around the table (`SceneConfig.surroundings`: floor, robot stand,
+    wall; seen, never touched), the camera delivers the named sensor's depth image (`envs.sensors`), and
+    the method sees what `sgjax.perception.Frame.from_depth` makes of it, the front end of a user's
+    frame: world points from the depth, the table fitted, objects from the true masks ("truth",
+    instance ids of the exact render, as a perfect segmenter would give) or from clustering
+    ("clusters"). The method gets the table's and the objects' points (labels -1 and 1..K); what the
+    front end put beyond the table is dropped. Which object a grasp is on is still decided on the exact
+    render's truth.
 """
 
 from __future__ import annotations
@@ -38,13 +47,16 @@ import numpy as np
 
 from envs import camera as camera_lib
 from envs import scene as scene_lib
+from envs import sensors as sensors_lib
 from envs import trial as trial_lib
 from eval.numerics import numerics_label
 from eval.protocol import Decision, Method
 from sgjax.geometry.gripper import GripperSpec
+from sgjax.perception import OTHER, Frame, Intrinsics, PerceptionError
 
 LOG_VERSION = 1
 NO_OBJECT = "no_object"
+MASKS = ("truth", "clusters")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -72,7 +84,10 @@ def get_setting(name: str) -> Setting:
 @dataclasses.dataclass(frozen=True)
 class DeclutterConfig:
     """Episode settings: attempts allowed beyond the object count, camera, scene, trial, trial backend;
-    remember_failures: hand the method the poses that failed so far in the scene (module doc)."""
+    remember_failures: hand the method the poses that failed so far in the scene; sensor (`envs.sensors`:
+    exact, kinect, realsense, stereo) and masks (truth, clusters): how the method sees the scene (module
+    doc). sensor and masks stay out of the repr (the resume key): `view` names them in the key and the
+    setting's label, so that exact runs keep theirs."""
 
     extra_attempts: int = 5
     camera: camera_lib.CameraConfig = dataclasses.field(default_factory=camera_lib.CameraConfig)
@@ -82,11 +97,26 @@ class DeclutterConfig:
     backend: str = "cpu"
     nthread: int = 0
     remember_failures: bool = True
+    sensor: str = dataclasses.field(default="exact", repr=False)
+    masks: str = dataclasses.field(default="truth", repr=False)
 
     def __post_init__(self):
         if self.extra_attempts < 0:
             raise ValueError(f"extra_attempts must be >= 0, got {self.extra_attempts}")
         trial_lib.check_backend(self.backend)
+        sensors_lib.get_sensor(self.sensor)
+        if self.masks not in MASKS:
+            raise ValueError(f"unknown masks {self.masks!r}: expected one of {', '.join(MASKS)}")
+
+    @property
+    def through_sensor(self) -> bool:
+        """Whether the method sees the scene through the sensor and the front end (module doc)."""
+        return (self.sensor, self.masks) != ("exact", "truth")
+
+    @property
+    def view(self) -> str:
+        """"" for the exact render with true masks, else "<sensor>+<masks>" (e.g. "realsense+clusters")."""
+        return f"{self.sensor}+{self.masks}" if self.through_sensor else ""
 
 
 def scene_seed(seed: int, index: int) -> int:
@@ -170,8 +200,36 @@ class SceneRun:
 
 
 def make_benchmark_scene(objects: Sequence, n_objects: int, seed: int, index: int, config: DeclutterConfig):
-    """Scene `index` of a run seeded `seed`: identical for every method."""
-    return scene_lib.make_scene(objects, n_objects, scene_seed(seed, index), config.scene, config.gripper)
+    """Scene `index` of a run seeded `seed`: identical for every method (through a sensor, with the
+    table's surroundings, which only the camera sees)."""
+    scene_config = dataclasses.replace(config.scene, surroundings=True) if config.through_sensor else config.scene
+    return scene_lib.make_scene(objects, n_objects, scene_seed(seed, index), scene_config, config.gripper)
+
+
+def truth_masks(observation: camera_lib.Observation) -> np.ndarray:
+    """The exact render's instance ids [H, W] as a segmenter's masks: object index + 1, 0 = background."""
+    return np.where(observation.labels >= 0, observation.labels + 1, 0)
+
+
+def observe(scene, config: DeclutterConfig, seed: int) -> tuple[camera_lib.Observation, np.ndarray, np.ndarray, dict]:
+    """What the method sees of `scene`: (the exact observation, points [P, 3], labels [P], info). The
+    exact render's own cloud and labels, or through a sensor the front end's (module doc); info: the
+    front end's {"objects_found", "table" plane} then, else {}. A frame the front end cannot use
+    (PerceptionError) leaves the method no points."""
+    if not config.through_sensor:
+        obs = camera_lib.observe(scene, config.camera, seed=seed)
+        return obs, obs.points, obs.point_labels, {}
+    sensed = sensors_lib.sense(scene, config.camera, config.sensor, seed=seed)
+    obs = sensed.truth
+    h, w = sensed.depth.shape
+    try:
+        frame = Frame.from_depth(sensed.depth, Intrinsics.from_matrix(obs.intrinsic, w, h), extrinsics=obs.extrinsic,
+                                 masks=truth_masks(obs) if config.masks == "truth" else None)
+    except PerceptionError as exc:
+        return obs, np.zeros((0, 3), np.float32), np.zeros(0, np.int32), {"front_end": str(exc)}
+    keep = frame.labels != OTHER
+    info = {"objects_found": len(frame.object_ids), "table": [round(v, 5) for v in frame.table.plane]}
+    return obs, frame.points[keep].astype(np.float32), frame.labels[keep], info
 
 
 def run_scene(
@@ -220,17 +278,20 @@ def run_scene(
             end = "attempt_cap"
             break
         t0 = time.perf_counter()
-        obs = camera_lib.observe(scene, config.camera, seed=s_seed + len(attempts))
+        obs, points, labels, seen = observe(scene, config, s_seed + len(attempts))
         observe_s = time.perf_counter() - t0
         first = obs if first is None else first
         if ground_truth:
             method.set_scene(scene)
         p_seed = plan_seed(s_seed, len(attempts))
+        if not len(points):  # the front end found no table in the frame: nothing to plan on
+            end, final_reason, final_timing = "no_grasp", f"front end: {seen['front_end']}", {}
+            break
         if memory:
             avoid = np.asarray(failed, np.float64).reshape(-1, 4, 4)
-            decision: Decision = method.plan(obs.points, obs.point_labels, viewpoint, p_seed, avoid=avoid)
+            decision: Decision = method.plan(points, labels, viewpoint, p_seed, avoid=avoid)
         else:
-            decision = method.plan(obs.points, obs.point_labels, viewpoint, p_seed)
+            decision = method.plan(points, labels, viewpoint, p_seed)
         if decision.pose is None:
             end, final_reason, final_timing = "no_grasp", decision.reason or "no grasp", dict(decision.timing)
             break
@@ -254,6 +315,8 @@ def run_scene(
             "trial_s": 0.0,
             "info": _json_info(decision.info),
         }
+        if seen:
+            record["seen"] = seen
         attempts.append(record)
         candidates = {k: v for k, v in counts.items() if scene.present[k]}
         if not candidates:
@@ -300,4 +363,6 @@ def run_scene(
         "wall_s": time.perf_counter() - start,
         "numerics": numerics_label(),
     }
+    if config.through_sensor:
+        log["view"] = config.view
     return SceneRun(log, first)

@@ -266,3 +266,16 @@ def test_a_labelled_directory_replays_to_its_recorded_outcomes(setup, whole):
     targets = np.array([names.index(str(n)) for n in stored["object_name"][rows]])
     replayed = run_trials(scene, targets, stored["pose"][rows].astype(np.float64), stored["width"][rows], config=CONFIG.trial)
     np.testing.assert_array_equal(replayed.outcome, stored["outcome"][rows])
+
+
+def test_a_labelled_directory_resumes_after_a_config_field_was_added(tmp_path):
+    """A directory labelled before `SceneConfig.surroundings` existed holds a config without it: the same
+    settings, so it resumes; other settings are still refused."""
+    from train.label import CONFIG_FILE, check_out_dir
+
+    saved = json.loads(LabelConfig().to_json())
+    del saved["scene"]["surroundings"]
+    (tmp_path / CONFIG_FILE).write_text(json.dumps(saved, sort_keys=True))
+    check_out_dir(str(tmp_path), LabelConfig())
+    with pytest.raises(ValueError, match="different labelling config"):
+        check_out_dir(str(tmp_path), dataclasses.replace(LabelConfig(), n_objects=3))

@@ -476,7 +476,11 @@ def check_out_dir(out_dir: str, config: LabelConfig) -> None:
     # directory race to write it, and one with other options must not go on to mix its data in.
     with open(path) as fh:
         saved = fh.read()
-    if saved != text:
+    try:  # compared as configs, not as text: a field added since (at its default) reads back the same
+        same = saved == text or LabelConfig.from_json(saved) == config
+    except ValueError:
+        same = False
+    if not same:
         raise ValueError(
             f"{out_dir} holds data made with a different labelling config ({path}); "
             "use a new --out directory or the same options"

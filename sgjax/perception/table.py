@@ -27,19 +27,22 @@ class TablePlane:
 
 
 def fit_table(points: np.ndarray, viewpoint=(0.0, 0.0, 0.0), distance: float = 0.005, iterations: int = 500,
-              seed: int = 0, max_tilt_deg: float | None = None, up=None, sample: int = 20000) -> TablePlane:
+              seed: int = 0, max_tilt_deg: float | None = None, up=None, sample: int = 4000) -> TablePlane:
     """RANSAC: the plane through three random points that has the most points within `distance` metres
-    (`iterations` tries, seeded), refined by least squares on those inliers (twice), its normal turned
+    (at most `iterations` tries, seeded; fewer when the best plane so far is large), refined by least squares on those inliers (twice), its normal turned
     towards `viewpoint` (the camera's position in the points' frame; the origin in the camera frame).
     The largest plane in view is taken to be the table: crop the cloud to the workspace first when a
     wall or floor could outsize it. max_tilt_deg with up [3]: only planes whose normal lies within that
     angle of `up` (e.g. world z with extrinsics) count. The tries are scored on a seeded subsample of
-    `sample` points (a VGA frame holds 300k), the refinement and the inliers use them all.
+    `sample` points (a VGA frame holds 300k), the least squares on the inliers among 20k of them, the
+    returned inliers and rms use them all.
     points [N, 3], N >= 3 -> TablePlane."""
     pts = np.asarray(points, np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise ValueError(f"points must be [N, 3], got shape {pts.shape}")
-    pts = pts[np.all(np.isfinite(pts), axis=1)]
+    finite = np.isfinite(pts)
+    if not finite.all():
+        pts = pts[np.all(finite, axis=1)]
     if len(pts) < 3:
         raise ValueError(f"a table plane needs at least 3 finite points, got {len(pts)}")
     if not distance > 0 or iterations < 1 or sample < 3:
@@ -50,7 +53,7 @@ def fit_table(points: np.ndarray, viewpoint=(0.0, 0.0, 0.0), distance: float = 0
         up = np.asarray(up, np.float64) / np.linalg.norm(up)
     min_cos = None if max_tilt_deg is None or up is None else np.cos(np.deg2rad(max_tilt_deg))
     rng = np.random.default_rng(seed)
-    scored = pts if len(pts) <= sample else pts[rng.choice(len(pts), sample, replace=False)]
+    scored = pts if len(pts) <= sample else pts[rng.integers(0, len(pts), sample)]  # (with replacement: O(sample))
     triples = rng.integers(0, len(scored), size=(iterations, 3))
     a, b, c = scored[triples[:, 0]], scored[triples[:, 1]], scored[triples[:, 2]]
     normals = np.cross(b - a, c - a)
@@ -63,8 +66,13 @@ def fit_table(points: np.ndarray, viewpoint=(0.0, 0.0, 0.0), distance: float = 0
         raise ValueError("no plane found: the points are collinear, or no plane lies within max_tilt_deg of up")
     offsets = -np.sum(normals * a, axis=1)
     best, best_count = -1, -1
-    # Candidates in chunks, so that memory stays bounded for large clouds.
+    # Candidates in chunks, so that memory stays bounded for large clouds; stop once the tries so far
+    # would have drawn three inliers of the best plane with probability 0.9999 (adaptive RANSAC,
+    # Hartley & Zisserman Sec. 4.7: a table filling most of the frame needs a few dozen tries).
     for start in range(0, iterations, 64):
+        share = best_count / len(scored)
+        if best_count > 0 and start >= np.log(1e-4) / np.log(max(1.0 - share ** 3, 1e-12)):
+            break
         rows = np.flatnonzero(ok[start:start + 64]) + start
         if not len(rows):
             continue
@@ -73,12 +81,13 @@ def fit_table(points: np.ndarray, viewpoint=(0.0, 0.0, 0.0), distance: float = 0
         if counts[i] > best_count:
             best, best_count = int(rows[i]), int(counts[i])
     normal, offset = normals[best], offsets[best]
+    refit = pts if len(pts) <= 20000 else pts[rng.integers(0, len(pts), 20000)]
     for _ in range(2):  # least squares on the inliers: the plane through their centroid, smallest spread
-        inliers = np.abs(pts @ normal + offset) <= distance
+        inliers = np.abs(refit @ normal + offset) <= distance
         if inliers.sum() < 3:
             break
-        centroid = pts[inliers].mean(0)
-        _, _, vt = np.linalg.svd(pts[inliers] - centroid, full_matrices=False)
+        centroid = refit[inliers].mean(0)
+        _, _, vt = np.linalg.svd(refit[inliers] - centroid, full_matrices=False)
         normal = vt[2] * (1.0 if vt[2] @ normal >= 0 else -1.0)
         offset = -float(normal @ centroid)
     if normal @ view + offset < 0:  # free space (the camera's side) positive

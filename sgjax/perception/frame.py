@@ -1,0 +1,214 @@
+"""One real frame, ready for the planner: points, per-point object labels, the table, the camera.
+
+    frame = Frame.from_depth("depth.png", "intrinsics.json", depth_scale=1000)          # camera frame
+    frame = Frame.from_depth(depth_m, K, extrinsics=T, masks=ids, workspace=roi)        # world frame
+    frame.points, frame.labels, frame.table.plane, frame.camera_position, frame.object_ids
+
+Labels: objects 1..K (from `masks`, their instance ids, or from clustering the points above the table,
+`sgjax.perception.segment`), TABLE (-1) for the table, OTHER (-2) for the rest. Frame: without extrinsics
+everything is in the camera's (OpenCV: x right, y down, z forward) and the table's normal is "up"; with
+a camera-to-world `extrinsics` everything is in the world's and the table is looked for within 30 degrees
+of world +z. Errors are `PerceptionError` (a ValueError) with one line naming the problem.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+
+import numpy as np
+
+from sgjax.perception.camera import Intrinsics, existing_file, read_extrinsics, read_intrinsics, to_world
+from sgjax.perception.depth import back_project, read_depth
+from sgjax.perception.segment import OTHER, TABLE, SegmentConfig, height_threshold, plane_basis, segment_objects
+from sgjax.perception.table import TablePlane, fit_table
+
+MIN_TABLE_SHARE = 0.05  # a plane holding fewer of the frame's points is not taken for the table
+PLAUSIBLE_DEPTH = (0.1, 10.0)  # metres: a median depth outside this looks like a wrong depth_scale
+WORLD_TABLE_TILT_DEG = 30.0
+
+
+class PerceptionError(ValueError):
+    """A frame that cannot be used: the message names the problem in one line."""
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Frame:
+    """A depth frame's scene: points [N, 3] (metres, `frame` coordinates), labels int32 [N] (module
+    doc), pixels int [N, 2] (row, column of each point), table (its plane in the same frame, normal
+    towards the camera), camera_position [3], intrinsics, extrinsics [4, 4] camera-to-world or None,
+    image_size (height, width), segmentation "masks" | "clusters"."""
+
+    points: np.ndarray
+    labels: np.ndarray
+    pixels: np.ndarray
+    table: TablePlane
+    camera_position: np.ndarray
+    intrinsics: Intrinsics
+    extrinsics: np.ndarray | None
+    image_size: tuple[int, int]
+    segmentation: str
+
+    @property
+    def frame(self) -> str:
+        """"world" with extrinsics, else "camera"."""
+        return "camera" if self.extrinsics is None else "world"
+
+    @property
+    def object_ids(self) -> list[int]:
+        """The objects' labels, ascending."""
+        return [int(i) for i in np.unique(self.labels[self.labels > 0])]
+
+    def object_points(self, object_id: int) -> np.ndarray:
+        """[n, 3] the points of object `object_id`."""
+        return self.points[self.labels == object_id]
+
+    def label_image(self) -> np.ndarray:
+        """[H, W] int32 the label of each pixel; OTHER where the frame has no point."""
+        image = np.full(self.image_size, OTHER, np.int32)
+        image[self.pixels[:, 0], self.pixels[:, 1]] = self.labels
+        return image
+
+    def table_frame(self) -> np.ndarray:
+        """[4, 4] the table's frame in this frame's coordinates: z the table's normal (up, towards the
+        camera), x the camera's right (its x axis) laid into the table, the origin the camera's foot on
+        the table. A planner that expects z up plans in it (`sgjax.grasping.plan_frame`)."""
+        n = self.table.normal
+        right = np.eye(3)[0] if self.extrinsics is None else self.extrinsics[:3, 0]
+        x = right - (right @ n) * n
+        if np.linalg.norm(x) < 1e-6:  # the camera's x along the normal: any direction in the plane
+            x = plane_basis(n)[0]
+        x /= np.linalg.norm(x)
+        pose = np.eye(4)
+        pose[:3, :3] = np.stack([x, np.cross(n, x), n], axis=1)
+        pose[:3, 3] = self.camera_position - self.table.height(self.camera_position[None])[0] * n
+        return pose
+
+    @classmethod
+    def from_depth(cls, depth, intrinsics, depth_scale: float = 1000.0, extrinsics=None, masks=None,
+                   workspace=None, segment: SegmentConfig = SegmentConfig(), seed: int = 0) -> Frame:
+        """A frame from a depth image and its calibration.
+
+        depth: a file (16-bit PNG in 1/depth_scale metres, .npy/.npz in metres; `read_depth`) or an
+        array [H, W] (float: metres; integer: units of 1/depth_scale metres); 0, NaN: no depth.
+        intrinsics: an `Intrinsics`, a 3x3 matrix or a file (`read_intrinsics`). extrinsics: None, a
+        camera-to-world [4, 4] or a file. masks: None (cluster the points above the table), or instance
+        ids [H, W] (0 = background) or a PNG of them. workspace: None, or bool [H, W] (or a PNG, nonzero
+        = in) of the pixels to use. seed: the table fit's. -> Frame; PerceptionError for unusable input."""
+        depth = _depth(depth, depth_scale)
+        if not isinstance(intrinsics, Intrinsics):
+            intrinsics = read_intrinsics(intrinsics) if _is_path(intrinsics) else Intrinsics.from_matrix(intrinsics)
+        if extrinsics is not None:
+            extrinsics = read_extrinsics(extrinsics) if _is_path(extrinsics) else _rigid(extrinsics)
+        size = depth.shape
+        if intrinsics.width is not None and (intrinsics.height, intrinsics.width) != size:
+            raise PerceptionError(f"the depth image is {size[1]}x{size[0]} pixels but the intrinsics are for "
+                                  f"{intrinsics.width}x{intrinsics.height}")
+        valid = depth > 0
+        if not valid.any():
+            raise PerceptionError("the depth image has no valid pixel (all zero, NaN or inf)")
+        median = float(np.median(depth[valid]))
+        if not PLAUSIBLE_DEPTH[0] <= median <= PLAUSIBLE_DEPTH[1]:
+            raise PerceptionError(f"the median depth is {median:.4g} m, outside {PLAUSIBLE_DEPTH[0]}-{PLAUSIBLE_DEPTH[1]} m: "
+                                  f"is depth_scale ({depth_scale:g} units per metre) right?")
+        if workspace is not None:
+            workspace = _image(workspace, size, "workspace mask") != 0
+            depth = np.where(workspace, depth, 0.0)
+            if not (depth > 0).any():
+                raise PerceptionError("the workspace mask holds no pixel with depth")
+        ids = None if masks is None else _image(masks, size, "masks")
+        points, pixels = back_project(depth, intrinsics)
+        camera_position = np.zeros(3)
+        up = None
+        if extrinsics is not None:
+            points, camera_position, up = to_world(points, extrinsics), extrinsics[:3, 3].copy(), (0.0, 0.0, 1.0)
+        try:
+            table = fit_table(points, viewpoint=camera_position, seed=seed, up=up,
+                              max_tilt_deg=None if up is None else WORLD_TABLE_TILT_DEG)
+        except ValueError as exc:
+            raise PerceptionError(f"no table plane found: {exc}") from None
+        if table.inliers.mean() < MIN_TABLE_SHARE:
+            raise PerceptionError(f"no table plane found: the largest plane holds {100 * table.inliers.mean():.1f} % of "
+                                  f"the points (< {100 * MIN_TABLE_SHARE:.0f} %)")
+        if ids is None:
+            labels, how = segment_objects(points, pixels, size, table, camera_position,
+                                     1.0 / min(intrinsics.fx, intrinsics.fy), segment), "clusters"
+        else:
+            labels, how = _mask_labels(ids, pixels, points, table, segment), "masks"
+        return cls(points, labels, pixels, table, camera_position, intrinsics, extrinsics, size, how)
+
+
+def _is_path(value) -> bool:
+    return isinstance(value, (str, os.PathLike))
+
+
+def _depth(depth, depth_scale: float) -> np.ndarray:
+    if _is_path(depth):
+        return read_depth(depth, depth_scale).astype(np.float64)
+    depth = np.asarray(depth)
+    if depth.ndim != 2:
+        raise PerceptionError(f"a depth image must be [H, W], got shape {depth.shape}")
+    if depth.dtype.kind in "ui":
+        if not (np.isfinite(depth_scale) and depth_scale > 0):
+            raise PerceptionError(f"depth_scale must be a number > 0 (units per metre), got {depth_scale}")
+        depth = depth / float(depth_scale)
+    elif depth.dtype.kind != "f":
+        raise PerceptionError(f"a depth image must hold numbers, got {depth.dtype}")
+    depth = np.where(np.isfinite(depth), depth, 0.0).astype(np.float64)
+    if (depth < 0).any():
+        raise PerceptionError(f"the depth image holds {int((depth < 0).sum())} negative depths")
+    return depth
+
+
+def _rigid(T) -> np.ndarray:
+    T = np.asarray(T, np.float64)
+    R = T[:3, :3] if T.shape == (4, 4) else None
+    if R is None or not np.all(np.isfinite(T)) or np.abs(R @ R.T - np.eye(3)).max() > 1e-3 \
+            or abs(np.linalg.det(R) - 1) > 1e-3 or np.abs(T[3] - (0, 0, 0, 1)).max() > 1e-9:
+        raise PerceptionError(f"extrinsics must be a rigid camera-to-world 4x4 matrix, got shape {T.shape}")
+    return T
+
+
+def _image(value, size: tuple[int, int], what: str) -> np.ndarray:
+    """An integer image [H, W] from an array or a PNG / .npy file, checked against the depth's size."""
+    if _is_path(value):
+        path, suffix = existing_file(value, what)
+        if suffix == ".npy":
+            value = np.load(path, allow_pickle=False)
+        else:
+            from PIL import Image
+
+            try:
+                with Image.open(path) as image:
+                    value = np.asarray(image)
+            except OSError as exc:
+                raise PerceptionError(f"{path}: cannot read the {what} ({exc})") from None
+        name = path
+    else:
+        name = f"the {what}"
+    value = np.asarray(value)
+    if value.ndim == 3 and value.shape[2] in (3, 4):  # an RGB(A) picture of it: every channel must agree
+        if np.any(value[..., :3] != value[..., :1]):
+            raise PerceptionError(f"{name}: expected one channel of ids, got a colour image")
+        value = value[..., 0]
+    if value.shape != size:
+        raise PerceptionError(f"{name} is {value.shape[1] if value.ndim > 1 else '?'}x{value.shape[0]} "
+                              f"pixels but the depth image is {size[1]}x{size[0]}")
+    if value.dtype.kind not in "biu":
+        raise PerceptionError(f"{name}: expected integer ids (or bool), got {value.dtype}")
+    return value.astype(np.int64)
+
+
+def _mask_labels(ids: np.ndarray, pixels: np.ndarray, points: np.ndarray, table: TablePlane,
+                 segment: SegmentConfig) -> np.ndarray:
+    """Labels from instance ids: a masked pixel's id (> 0; a mask that strays more than the table's
+    noise below the table is background there), else TABLE on the table and OTHER off it."""
+    if (ids < 0).any():
+        raise PerceptionError("masks: instance ids must be >= 0 (0 = background)")
+    height = table.height(points)
+    threshold = height_threshold(height, segment)
+    point_ids = ids[pixels[:, 0], pixels[:, 1]]
+    labels = np.where(np.abs(height) <= threshold, TABLE, OTHER).astype(np.int32)
+    obj = (point_ids > 0) & (height >= -threshold)
+    labels[obj] = point_ids[obj]
+    return labels

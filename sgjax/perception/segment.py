@@ -1,0 +1,250 @@
+"""Objects without masks: the points above the table, segmented into instances.
+
+Region growing on the image grid (as in Uckermann, Haschke & Ritter, IROS 2012, and PCL's
+organised segmentation): two neighbouring pixels above the table belong to one object when their points
+are within a distance tolerance of each other and no concave crease runs between the surfaces on either
+side of them (LCCP's convexity test on smoothed normals, Stein et al., CVPR 2014): objects piled
+against each other meet in a concave crease or a jump in depth. Clusters of fewer than `min_points`
+points are dropped (noise, flying pixels). Only what stands on the table counts: a cluster whose points,
+dropped along the table's normal, mostly fall outside the table's visible extent (the robot's stand, a
+wall, a shelf beyond the edge) is background, as is a cluster whose surface goes on below the table
+(a stand beside it, its legs) and anything below the table. Touching objects without
+a crease still merge and an object seen in two pieces (an occluder in front of it) splits:
+docs/perception.md measures how often on simulated frames.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from sgjax.perception.table import TablePlane
+
+TABLE = -1  # label of table points
+DEEP = 0.015  # metres below the table: a surface reaching this deep goes on below the table
+OTHER = -2  # label of everything else that is no object: below or beyond the table, too small, too high
+
+
+@dataclasses.dataclass(frozen=True)
+class SegmentConfig:
+    """tolerance: the largest step (metres) between neighbouring pixels of one object (grown with the
+    sensor's noise and with grazing x the pixel's footprint, `link_tolerance`); concave_deg: a concave crease sharper than this between the
+    surfaces on either side of two neighbours separates them (touching objects meet in one);
+    normal_window, normal_span: the smoothing of the normals (pixels); min_points: smaller clusters are dropped
+    (noise, flying pixels); min_height: points less than this above the table are table, unless the
+    table's own noise is larger (then 3 sigma of it, estimated from the frame); max_height: points
+    higher above the table are background; on_table: the fraction of a cluster's points that must lie
+    over the table's visible extent."""
+
+    tolerance: float = 0.004
+    grazing: float = 6.0
+    concave_deg: float = 30.0
+    normal_window: int = 7
+    normal_span: int = 3
+    min_points: int = 50
+    min_height: float = 0.004
+    max_height: float = 0.5
+    on_table: float = 0.5
+
+    def __post_init__(self):
+        if not (self.tolerance > 0 and self.min_height >= 0 and self.max_height > self.min_height):
+            raise ValueError(f"need tolerance > 0 and 0 <= min_height < max_height, got {self.tolerance}, "
+                             f"{self.min_height}, {self.max_height}")
+        if self.min_points < 1 or not 0 <= self.on_table <= 1:
+            raise ValueError(f"need min_points >= 1 and 0 <= on_table <= 1, got {self.min_points}, {self.on_table}")
+
+
+def table_noise(height: np.ndarray) -> float:
+    """A robust standard deviation (1.4826 x the median absolute deviation) of the heights [N] of the
+    points within 2 cm of the table: the sensor's noise on it (metres); 0 without such points."""
+    height = height[:: max(1, len(height) // 20000)]  # 20k of a frame's heights pin the spread down
+    near = height[np.abs(height) <= 0.02]
+    if not len(near):
+        return 0.0
+    return float(1.4826 * np.median(np.abs(near - np.median(near))))
+
+
+def height_threshold(height: np.ndarray, config: SegmentConfig = SegmentConfig()) -> float:
+    """The height (metres) below which a point is table: max(min_height, 3 x the table's noise)."""
+    return max(config.min_height, 3.0 * table_noise(height))
+
+
+def link_tolerance(distance: np.ndarray, pixel_angle: float, noise: float, config: SegmentConfig = SegmentConfig()
+                   ) -> np.ndarray:
+    """The largest step (metres) between neighbouring pixels of one surface, for pixels at `distance`
+    [...] metres from the camera, pixel_angle (radians per pixel, 1 / f) and a sensor whose noise on the
+    table is `noise` (metres): the largest of `tolerance`, 6 x noise (two noisy neighbours differ by
+    sqrt(2) sigma on average) and `grazing` pixel footprints (a surface seen at a grazing angle, up to
+    arccos(1 / grazing), must not fall apart into strips)."""
+    return np.maximum(max(config.tolerance, 6.0 * noise), config.grazing * pixel_angle * distance)
+
+
+def plane_basis(normal: np.ndarray) -> np.ndarray:
+    """Two unit vectors [2, 3] spanning the plane of normal [3] (any orthonormal pair)."""
+    n = np.asarray(normal, np.float64) / np.linalg.norm(normal)
+    helper = np.eye(3)[int(np.argmin(np.abs(n)))]
+    e1 = np.cross(n, helper)
+    e1 /= np.linalg.norm(e1)
+    return np.stack([e1, np.cross(n, e1)])
+
+
+def table_extent(table_points: np.ndarray, normal: np.ndarray, cell: float = 0.005) -> np.ndarray:
+    """The table's visible extent: the corners [C, 2] (counter-clockwise, in `plane_basis(normal)`
+    coordinates) of the convex hull of the points at table height [T, 3] that form the table: on a
+    grid of `cell` metres, the 8-connected pieces of at least a tenth of the largest one's cells (other
+    surfaces that cross the table's height, a stand's side, make small pieces apart from it). Empty
+    [0, 2] when they span no area."""
+    from scipy.ndimage import label
+    from scipy.spatial import ConvexHull, QhullError
+
+    if len(table_points) < 3:
+        return np.zeros((0, 2))
+    # A quarter of a frame's table points still mark every cell (a far 1 cm cell holds a dozen pixels).
+    flat = table_points[:: max(1, len(table_points) // 50000)] @ plane_basis(normal).T
+    cells = np.floor((flat - flat.min(0)) / cell).astype(np.int64)
+    occupied = np.zeros(cells.max(0) + 1, bool)
+    occupied[cells[:, 0], cells[:, 1]] = True
+    pieces, _ = label(occupied, structure=np.ones((3, 3)))
+    sizes = np.bincount(pieces.ravel())[1:]
+    keep = np.flatnonzero(sizes >= 0.1 * sizes.max()) + 1
+    corners = (np.argwhere(np.isin(pieces, keep)) + 0.5) * cell + flat.min(0)
+    try:
+        return corners[ConvexHull(corners).vertices]  # counter-clockwise in 2-D
+    except QhullError:  # the table's points on a line: no extent
+        return np.zeros((0, 2))
+
+
+def over_table(points: np.ndarray, corners: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """Which points [N, 3], dropped along normal [3], fall inside the table's extent (`table_extent`'s
+    corners [C, 2]) -> bool [N]."""
+    if len(corners) < 3 or not len(points):
+        return np.zeros(len(points), bool)
+    edges = np.roll(corners, -1, axis=0) - corners
+    q = points @ plane_basis(normal).T
+    # Inside a counter-clockwise convex polygon: left of (or on) every edge.
+    side = edges[:, 0] * (q[:, None, 1] - corners[:, 1]) - edges[:, 1] * (q[:, None, 0] - corners[:, 0])
+    return np.all(side >= -1e-12, axis=1)
+
+
+def point_image(points: np.ndarray, pixels: np.ndarray, image_size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """points [N, 3] at pixels [N, 2] (row, column) as an image [H, W, 3] and its validity bool [H, W]."""
+    image = np.zeros((*image_size, 3))
+    valid = np.zeros(image_size, bool)
+    image[pixels[:, 0], pixels[:, 1]] = points
+    valid[pixels[:, 0], pixels[:, 1]] = True
+    return image, valid
+
+
+def smooth_normals(image: np.ndarray, valid: np.ndarray, viewpoint, window: int, span: int) -> np.ndarray:
+    """Unit surface normals [H, W, 3] of a point image (its valid pixels averaged over window x window,
+    tangents over +-span pixels): sensor noise on one pixel tilts a normal by tens of degrees, these by a
+    few. Each normal points out of its surface, towards viewpoint [3] (the camera)."""
+    from scipy.ndimage import uniform_filter
+
+    weight = uniform_filter(valid.astype(np.float64), window)
+    mean = np.stack([uniform_filter(image[..., k] * valid, window) for k in range(3)], -1)
+    mean /= np.maximum(weight, 1e-9)[..., None]
+    du = np.zeros_like(mean)
+    dv = np.zeros_like(mean)
+    du[:, span:-span] = mean[:, 2 * span:] - mean[:, :-2 * span]
+    dv[span:-span] = mean[2 * span:] - mean[:-2 * span]
+    normals = np.cross(du, dv)
+    normals *= np.where(np.sum(normals * (np.asarray(viewpoint, np.float64) - image), axis=-1) < 0, -1.0, 1.0)[..., None]
+    return normals / np.maximum(np.linalg.norm(normals, axis=-1, keepdims=True), 1e-12)
+
+
+def image_clusters(image: np.ndarray, member: np.ndarray, normals: np.ndarray, tolerance: np.ndarray,
+                   concave_deg: float, span: int) -> np.ndarray:
+    """Connected components [H, W] (int, -1 off `member`) of the member pixels, where two 4-neighbours
+    are joined when they lie within the first one's `tolerance` [H, W] of each other and no concave crease runs between the
+    surfaces on their two sides (the normals `span` pixels before the first and after the second; LCCP's
+    test: (n_a - n_b) . (p_a - p_b) < 0, and the normals more than concave_deg apart)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    h, w = member.shape
+    rows, cols = np.nonzero(member)
+    cos_concave = np.cos(np.deg2rad(concave_deg))
+    first, second = [], []
+    for dr, dc in ((0, 1), (1, 0)):
+        ok = (rows + dr < h) & (cols + dc < w)
+        r, c = rows[ok], cols[ok]
+        ok = member[r + dr, c + dc]
+        r, c = r[ok], c[ok]
+        r2, c2 = r + dr, c + dc
+        near = np.linalg.norm(image[r, c] - image[r2, c2], axis=-1) <= tolerance[r, c]
+        r, c, r2, c2 = r[near], c[near], r2[near], c2[near]
+        ra, ca = np.clip(r - dr * span, 0, h - 1), np.clip(c - dc * span, 0, w - 1)
+        rb, cb = np.clip(r2 + dr * span, 0, h - 1), np.clip(c2 + dc * span, 0, w - 1)
+        na, nb = normals[ra, ca], normals[rb, cb]
+        concave = (np.sum((na - nb) * (image[ra, ca] - image[rb, cb]), axis=-1) < 0) & (np.sum(na * nb, axis=-1) < cos_concave)
+        first.append((r * w + c)[~concave])
+        second.append((r2 * w + c2)[~concave])
+    first, second = np.concatenate(first), np.concatenate(second)
+    graph = coo_matrix((np.ones(len(first), np.int8), (first, second)), shape=(h * w, h * w))
+    _, component = connected_components(graph, directed=False)
+    return np.where(member, component.reshape(h, w), -1)
+
+
+def segment_objects(points: np.ndarray, pixels: np.ndarray, image_size: tuple[int, int], table: TablePlane,
+                    viewpoint, pixel_angle: float, config: SegmentConfig = SegmentConfig()) -> np.ndarray:
+    """Instance labels of a frame's points [N, 3] at pixels [N, 2] (row, column) of an image of
+    image_size (H, W), seen from viewpoint [3] with pixel_angle radians per pixel (1 / f), over its
+    table -> int32 [N]: objects 1..K (the largest first), TABLE (-1) for the
+    table, OTHER (-2) for the rest (module doc)."""
+    points = np.asarray(points, np.float64)
+    height = table.height(points)
+    noise = table_noise(height)
+    threshold = max(config.min_height, 3.0 * noise)  # height_threshold
+    labels = np.full(len(points), OTHER, np.int32)
+    on_plane = np.abs(height) <= threshold
+    labels[on_plane] = TABLE
+    above = (height > threshold) & (height <= config.max_height)
+    if not above.any():
+        return labels
+    # Only the box of image rows and columns around the points above the table is looked at.
+    margin = config.normal_window + config.normal_span
+    lo = np.maximum(pixels[above].min(0) - margin, 0)
+    hi = np.minimum(pixels[above].max(0) + margin + 1, image_size)
+    box = (pixels[:, 0] >= lo[0]) & (pixels[:, 0] < hi[0]) & (pixels[:, 1] >= lo[1]) & (pixels[:, 1] < hi[1])
+    local = pixels - lo
+    image, valid = point_image(points[box], local[box], tuple(hi - lo))
+    member = np.zeros(tuple(hi - lo), bool)
+    member[local[above, 0], local[above, 1]] = True
+    normals = smooth_normals(image, valid, viewpoint, config.normal_window, config.normal_span)
+    tolerance = link_tolerance(np.linalg.norm(image - np.asarray(viewpoint, np.float64), axis=-1), pixel_angle, noise,
+                               config)
+    components = image_clusters(image, member, normals, tolerance, config.concave_deg, config.normal_span)
+    _, cluster = np.unique(components[local[above, 0], local[above, 1]], return_inverse=True)
+    cluster = cluster.reshape(-1)
+    sizes = np.bincount(cluster)
+    inside = over_table(points[above], table_extent(points[on_plane], table.normal), table.normal)
+    inside_share = np.bincount(cluster, weights=inside, minlength=len(sizes)) / sizes
+    level = np.zeros(member.shape)
+    level[local[box, 0], local[box, 1]] = height[box]
+    below = _continues_below(image, valid, member, level, normals, tolerance, threshold, table.normal, config.normal_span)
+    grounded = np.bincount(cluster, weights=below[local[above, 0], local[above, 1]], minlength=len(sizes)) == 0
+    kept = np.flatnonzero((sizes >= config.min_points) & (inside_share >= config.on_table) & grounded)
+    # Largest first; ties by the first point (row-major pixel order), so the numbering is deterministic.
+    first = np.full(len(sizes), len(cluster))
+    np.minimum.at(first, cluster, np.arange(len(cluster)))
+    order = kept[np.lexsort((first[kept], -sizes[kept]))]
+    new_id = np.full(len(sizes), OTHER, np.int32)
+    new_id[order] = np.arange(1, len(order) + 1, dtype=np.int32)
+    labels[above] = new_id[cluster]
+    return labels
+
+
+def _continues_below(image, valid, member, level, normals, tolerance, threshold, normal, span) -> np.ndarray:
+    """Which member pixels [h, w] belong to a surface that goes on below the table (a robot's stand, a
+    table leg, the table's own edge): linked (as in `image_clusters`, creases aside) through the points
+    at table height that are not the table's top (normals more than 45 deg off its normal) to points
+    1.5-5 cm below it (deeper than any sensor's noise on the table). Nothing standing on the table does
+    that. level [h, w]: heights above it."""
+    under = valid & (level <= -DEEP) & (level >= -0.05)
+    if not under.any():
+        return np.zeros(member.shape, bool)
+    band = valid & (level > -DEEP) & (level <= threshold) & (np.abs(normals @ normal) < np.cos(np.deg2rad(45.0)))
+    components = image_clusters(image, member | band | under, normals, tolerance, 180.0, span)
+    return member & np.isin(components, np.unique(components[under]))

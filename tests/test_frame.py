@@ -1,0 +1,177 @@
+"""A real frame in (`sgjax.perception.Frame`): the table, the objects found by segmentation or given as
+masks, the frames' conventions and the bad inputs, on a synthetic pinhole camera over a finite table
+with boxes on it and a robot's stand beyond its edge."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from sgjax.perception import OTHER, TABLE, Frame, Intrinsics, PerceptionError, SegmentConfig, to_world
+
+K = Intrinsics(fx=300.0, fy=300.0, cx=199.5, cy=149.5, width=400, height=300)
+TABLE_HALF = 0.3  # the table top: |x|, |y| <= 0.3 at z = 0; a floor at z = -0.7 around it
+# Boxes (centre of the bottom face, half sizes): two apart, one flat (8 mm), a tall one with a short one
+# pushed against its side (they touch along a concave crease), and the robot's stand off the table.
+SEPARATE = [((-0.12, 0.0, 0.0), (0.03, 0.03, 0.04)), ((0.17, 0.02, 0.0), (0.025, 0.04, 0.03)),
+            ((0.0, -0.1, 0.0), (0.04, 0.03, 0.004))]
+TOUCHING = [((-0.03, 0.1, 0.0), (0.03, 0.03, 0.06)), ((0.03 + 0.025, 0.1, 0.0), (0.025, 0.03, 0.025))]
+STAND = ((0.45, 0.0, -0.7), (0.1, 0.1, 0.48))  # its top 0.26 m above the table, beyond its +x edge
+
+
+def camera_pose():
+    """Camera-to-world [4, 4]: 0.55 m above the table, 0.45 m in front of it, looking at its centre."""
+    eye, target = np.array([0.0, -0.45, 0.55]), np.zeros(3)
+    z = (target - eye) / np.linalg.norm(target - eye)
+    x = np.cross(z, (0.0, 0.0, 1.0))
+    x /= np.linalg.norm(x)
+    T = np.eye(4)
+    T[:3, :3] = np.stack([x, np.cross(z, x), z], axis=1)
+    T[:3, 3] = eye
+    return T
+
+
+def render(boxes, T=None, stand=True):
+    """(depth [H, W] metres, ids [H, W]: box k + 1, 0 elsewhere) of the table, the floor, the boxes."""
+    T = camera_pose() if T is None else T
+    v, u = np.mgrid[0:K.height, 0:K.width]
+    rays = np.stack([(u - K.cx) / K.fx, (v - K.cy) / K.fy, np.ones_like(u, float)], -1) @ T[:3, :3].T
+    origin = T[:3, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        depth = np.full(rays.shape[:2], np.inf)
+        for height, extent in ((0.0, TABLE_HALF), (-0.7, np.inf)):
+            t = (height - origin[2]) / rays[..., 2]
+            at = origin + t[..., None] * rays
+            depth = np.where((t > 0) & (np.abs(at[..., :2]).max(-1) <= extent) & (t < depth), t, depth)
+        ids = np.zeros(depth.shape, int)
+        for k, (centre, half) in enumerate(list(boxes) + ([STAND] if stand else [])):
+            centre, half = np.asarray(centre), np.asarray(half)
+            lo, hi = centre - half + (0, 0, half[2]), centre + half + (0, 0, half[2])
+            t1, t2 = (lo - origin) / rays, (hi - origin) / rays
+            near, far = np.minimum(t1, t2).max(-1), np.maximum(t1, t2).min(-1)
+            hit = (near <= far) & (near > 0) & (near < depth)
+            depth = np.where(hit, near, depth)
+            ids = np.where(hit, k + 1 if k < len(boxes) else 0, ids)
+    ids = np.where(np.isfinite(depth), ids, 0)
+    return np.where(np.isfinite(depth), depth, 0.0), ids  # t along a z = 1 ray is the depth
+
+
+def truth_of(frame, ids):
+    return ids[frame.pixels[:, 0], frame.pixels[:, 1]]
+
+
+@pytest.mark.parametrize("world", [False, True])
+def test_clusters_find_each_object_on_the_table_and_not_the_stand(world):
+    depth, ids = render(SEPARATE + TOUCHING)
+    frame = Frame.from_depth(depth, K, extrinsics=camera_pose() if world else None)
+    assert frame.frame == ("world" if world else "camera") and frame.segmentation == "clusters"
+    truth = truth_of(frame, ids)
+    assert len(frame.object_ids) == 5  # the flat box too, the touching pair apart, not the stand
+    for k in range(1, 6):
+        found, counts = np.unique(frame.labels[truth == k], return_counts=True)
+        label = found[np.argmax(counts)]
+        assert label > 0 and counts.max() >= 0.85 * (truth == k).sum(), k  # one cluster holds the box...
+        assert np.mean(truth[frame.labels == label] == k) >= 0.98, k  # ...and little else
+    stand = np.linalg.norm(frame.points - frame.points.mean(0), axis=1) >= 0  # every point
+    world_points = to_world(frame.points, camera_pose()) if not world else frame.points
+    stand = (world_points[:, 0] > TABLE_HALF + 0.01) & (world_points[:, 2] > 0.01)
+    assert stand.sum() > 100 and np.all(frame.labels[stand] == OTHER)
+    table = (np.abs(world_points[:, 2]) < 1e-6) & (truth == 0)
+    assert np.mean(frame.labels[table] == TABLE) > 0.99
+    assert np.all(frame.labels[world_points[:, 2] < -0.5] == OTHER)  # the floor
+
+
+def test_camera_and_world_frames_agree():
+    depth, _ = render(SEPARATE)
+    camera = Frame.from_depth(depth, K)
+    world = Frame.from_depth(depth, K, extrinsics=camera_pose())
+    np.testing.assert_array_equal(camera.labels, world.labels)
+    np.testing.assert_allclose(to_world(camera.points, camera_pose()), world.points, atol=1e-9)
+    np.testing.assert_allclose(world.camera_position, camera_pose()[:3, 3])
+    np.testing.assert_allclose(camera.camera_position, 0.0)
+    np.testing.assert_allclose(world.table.plane, (0, 0, 1, 0), atol=1e-4)  # world z up, the table z = 0
+    # The table frame: z the table's normal (towards the camera), origin on the table below the camera.
+    for frame in (camera, world):
+        T = frame.table_frame()
+        np.testing.assert_allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-9)
+        assert np.linalg.det(T[:3, :3]) == pytest.approx(1.0)
+        np.testing.assert_allclose(T[:3, 2], frame.table.normal, atol=1e-9)
+        assert frame.table.height(T[None, :3, 3])[0] == pytest.approx(0.0, abs=1e-9)
+    ref = camera.table_frame()
+    np.testing.assert_allclose(camera_pose() @ ref, world.table_frame(), atol=1e-6)
+
+
+def test_masks_give_their_ids_and_a_workspace_limits_the_frame(tmp_path):
+    depth, ids = render(SEPARATE)
+    masks = np.where(ids > 0, ids + 10, 0).astype(np.uint16)
+    Image.fromarray(masks).save(tmp_path / "masks.png")
+    frame = Frame.from_depth(depth, K, masks=tmp_path / "masks.png")
+    assert frame.segmentation == "masks" and frame.object_ids == [11, 12, 13]
+    truth = truth_of(frame, ids)
+    assert np.all(frame.labels[truth > 0] == truth[truth > 0] + 10)
+    workspace = np.zeros(depth.shape, bool)
+    workspace[100:, : K.width // 2] = True  # the near left of the table (without it, the floor outsizes the table)
+    left = Frame.from_depth(depth, K, workspace=workspace)
+    assert np.all(left.pixels[:, 1] < K.width // 2) and np.all(left.pixels[:, 0] >= 100)
+    assert 1 <= len(left.object_ids) < 3
+
+
+def test_noisy_depth_still_finds_the_table_and_the_objects():
+    depth, ids = render(SEPARATE)
+    rng = np.random.default_rng(0)
+    noisy = np.where(depth > 0, depth + rng.normal(0.0, 0.0015, depth.shape), 0.0)  # 1.5 mm, a RealSense's at 0.7 m
+    frame = Frame.from_depth(noisy, K, extrinsics=camera_pose())
+    np.testing.assert_allclose(frame.table.plane, (0, 0, 1, 0), atol=2e-3)
+    truth = truth_of(frame, ids)
+    assert len(frame.object_ids) == 3
+    for k in (1, 2):  # the standing boxes whole; the 8 mm one rises barely above the noise
+        found, counts = np.unique(frame.labels[truth == k], return_counts=True)
+        assert found[np.argmax(counts)] > 0 and counts.max() >= 0.8 * (truth == k).sum()
+
+
+def test_depth_in_the_wrong_unit_is_refused_by_name():
+    depth, _ = render(SEPARATE)
+    with pytest.raises(PerceptionError, match="median depth is .* is depth_scale"):
+        Frame.from_depth(depth * 1000.0, K)  # millimetres given as metres
+    frame = Frame.from_depth(np.round(depth * 1000).astype(np.uint16), K)  # raw 16-bit: depth_scale 1000
+    assert len(frame.object_ids) == 3
+
+
+@pytest.mark.parametrize("case, message", [
+    ("zeros", "no valid pixel"), ("nan", "no valid pixel"), ("size", "intrinsics are for 400x300"),
+    ("masks", "masks is 10x10 pixels but the depth image is 400x300"), ("workspace", "workspace mask holds no pixel"),
+    ("no table", "no table plane found"), ("negative", "negative depths"), ("colour masks", "colour image"),
+])
+def test_bad_frames_get_one_clear_error(case, message):
+    depth, _ = render(SEPARATE)
+    kwargs = {}
+    if case == "zeros":
+        depth = np.zeros_like(depth)
+    elif case == "nan":
+        depth = np.full_like(depth, np.nan)
+    elif case == "size":
+        depth = depth[:, :-1]
+    elif case == "masks":
+        kwargs["masks"] = np.zeros((10, 10), int)
+    elif case == "workspace":
+        kwargs["workspace"] = np.zeros(depth.shape, bool)
+    elif case == "no table":  # a ball: no plane holds 5 % of its points
+        v, u = np.mgrid[0:K.height, 0:K.width]
+        rays = np.stack([(u - K.cx) / K.fx, (v - K.cy) / K.fy, np.ones_like(u, float)], -1)
+        a, b = np.sum(rays**2, -1), -2.0 * rays[..., 2] * 3.0  # centre (0, 0, 3), radius 0.6: |t r - c|^2 = 0.36
+        disc = b**2 - 4 * a * (9.0 - 0.36)
+        depth = np.where(disc > 0, (-b - np.sqrt(np.maximum(disc, 0))) / (2 * a), 0.0)
+    elif case == "negative":
+        depth[0, 0] = -1.0
+    elif case == "colour masks":
+        kwargs["masks"] = np.random.default_rng(0).integers(0, 3, (*depth.shape, 3))
+    with pytest.raises(PerceptionError, match=message):
+        Frame.from_depth(depth, K, **kwargs)
+
+
+def test_segment_config_is_checked():
+    with pytest.raises(ValueError, match="tolerance > 0"):
+        SegmentConfig(tolerance=0.0)
+    with pytest.raises(ValueError, match="min_points >= 1"):
+        SegmentConfig(min_points=0)
