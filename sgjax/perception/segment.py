@@ -74,10 +74,10 @@ def link_tolerance(distance: np.ndarray, pixel_angle: float, noise: float, confi
                    ) -> np.ndarray:
     """The largest step (metres) between neighbouring pixels of one surface, for pixels at `distance`
     [...] metres from the camera, pixel_angle (radians per pixel, 1 / f) and a sensor whose noise on the
-    table is `noise` (metres): the largest of `tolerance`, 6 x noise (two noisy neighbours differ by
+    table is `noise` (metres): the largest of `tolerance`, 4 x noise (two noisy neighbours differ by
     sqrt(2) sigma on average) and `grazing` pixel footprints (a surface seen at a grazing angle, up to
     arccos(1 / grazing), must not fall apart into strips)."""
-    return np.maximum(max(config.tolerance, 6.0 * noise), config.grazing * pixel_angle * distance)
+    return np.maximum(max(config.tolerance, 4.0 * noise), config.grazing * pixel_angle * distance)
 
 
 def plane_basis(normal: np.ndarray) -> np.ndarray:
