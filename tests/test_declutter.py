@@ -637,3 +637,71 @@ def test_vector_isa_is_the_cpus_widest_capped_by_xla_flags():
     assert vector_isa({"sse4_2"}, "") == "SSE4_2"
     label = numerics_label()
     assert "jaxlib" in label and "mujoco" in label
+
+
+# ---------------------------------------------------------------------------------------------
+# Through a sensor: the method sees what the front end of a real frame makes of the sensor's depth.
+
+
+class Recorder(InTheAir):
+    """InTheAir that keeps what it was shown."""
+
+    name = "recorder"
+
+    def __init__(self):
+        self.seen = []
+
+    def plan(self, points, labels, viewpoint, seed=0):
+        self.seen.append((np.array(points), np.array(labels)))
+        return super().plan(points, labels, viewpoint, seed)
+
+
+@pytest.mark.parametrize("masks", ["truth", "clusters"])
+def test_through_a_sensor_the_method_sees_the_front_ends_frame(objects, masks):
+    from envs.camera import observe
+
+    config = dataclasses.replace(CONFIG, sensor="realsense", masks=masks, extra_attempts=0)
+    assert config.through_sensor and config.view == f"realsense+{masks}"
+    assert repr(config) == repr(dataclasses.replace(CONFIG, extra_attempts=0))  # the resume key names the view instead
+    method = Recorder()
+    run = run_scene(method, objects, N_OBJECTS, seed=0, index=0, config=config, setting="tiny-4")
+    assert run.log["view"] == f"realsense+{masks}" and len(method.seen) == len(run.log["attempts"]) >= 1
+    points, labels = method.seen[0]
+    assert set(np.unique(labels)) <= {-1, *range(1, 100)} and (labels == -1).any() and (labels > 0).any()
+    seen = run.log["attempts"][0]["seen"]
+    assert seen["objects_found"] == len(np.unique(labels[labels > 0]))
+    np.testing.assert_allclose(seen["table"], (0, 0, 1, 0), atol=2e-3)  # the fitted table: z = 0, up
+    # The scene is the same one (the surroundings only seen), its depth another: not the exact render's cloud.
+    scene = declutter.make_benchmark_scene(objects, N_OBJECTS, 0, 0, config)
+    exact = observe(scene, config.camera)
+    assert "robot_stand" in [scene.model.geom(i).name for i in range(scene.model.ngeom)]
+    assert np.array_equal(scene.state, declutter.make_benchmark_scene(objects, N_OBJECTS, 0, 0, CONFIG).state)
+    assert len(points) != len(exact.points) or not np.array_equal(points, exact.points)
+    if masks == "truth":  # the instance ids of the exact render: object index + 1
+        visible = {int(i) + 1 for i, c in zip(*np.unique(exact.point_labels, return_counts=True)) if i >= 0 and c > 20}
+        assert visible <= set(np.unique(labels[labels > 0]).tolist())
+
+
+def test_the_exact_camera_keeps_todays_cloud_and_key(objects):
+    method = Recorder()
+    run = run_scene(method, objects, N_OBJECTS, seed=0, index=0, config=dataclasses.replace(CONFIG, extra_attempts=0),
+                    setting="tiny-4")
+    from envs.camera import observe
+
+    obs = observe(declutter.make_benchmark_scene(objects, N_OBJECTS, 0, 0, CONFIG), CONFIG.camera, seed=run.log["scene_seed"])
+    np.testing.assert_array_equal(method.seen[0][0], obs.points)
+    np.testing.assert_array_equal(method.seen[0][1], obs.point_labels)
+    assert "view" not in run.log and "seen" not in run.log["attempts"][0]
+    key = run_key("m", {}, 4, objects, CONFIG)
+    assert "view" not in key and run_key("m", {}, 4, objects, dataclasses.replace(CONFIG, sensor="kinect"))["view"] == "kinect+truth"
+
+
+def test_sensor_and_mask_choices_are_checked_and_the_cli_offers_each_sensor():
+    from envs.sensors import SENSORS
+    from sgjax_cli.commands import SENSORS as CLI_SENSORS
+
+    assert tuple(SENSORS) == CLI_SENSORS
+    with pytest.raises(ValueError, match="exact, kinect, realsense, stereo"):
+        DeclutterConfig(sensor="lidar")
+    with pytest.raises(ValueError, match="unknown masks 'sam'"):
+        DeclutterConfig(masks="sam")

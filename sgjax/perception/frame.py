@@ -107,7 +107,7 @@ class Frame:
         valid = depth > 0
         if not valid.any():
             raise PerceptionError("the depth image has no valid pixel (all zero, NaN or inf)")
-        median = float(np.median(depth[valid]))
+        median = float(np.median(depth[::4, ::4][valid[::4, ::4]])) if valid[::4, ::4].any() else float(np.median(depth[valid]))
         if not PLAUSIBLE_DEPTH[0] <= median <= PLAUSIBLE_DEPTH[1]:
             raise PerceptionError(f"the median depth is {median:.4g} m, outside {PLAUSIBLE_DEPTH[0]}-{PLAUSIBLE_DEPTH[1]} m: "
                                   f"is depth_scale ({depth_scale:g} units per metre) right?")
