@@ -81,6 +81,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=10)
     args = parser.parse_args()
 
+    from eval.declutter import DeclutterConfig
     from sgjax.perception import Frame, Intrinsics, back_project, fit_table, segment_objects
 
     speed, quality = [], []
@@ -89,7 +90,7 @@ def main() -> None:
         for sensed in frames(args.setting, args.seed, args.scenes, sensor):
             obs = sensed.truth
             h, w = sensed.depth.shape
-            K = Intrinsics.from_matrix(obs.intrinsic, w, h)
+            K = Intrinsics.from_matrix(DeclutterConfig().camera.pixel_intrinsic, w, h)
             points, pixels = back_project(sensed.depth, K)
             table = fit_table(points)
             parts.append([

@@ -81,6 +81,14 @@ class CameraConfig:
         return np.array([[f, 0.0, 0.5 * self.width], [0.0, f, 0.5 * self.height], [0.0, 0.0, 1.0]])
 
     @property
+    def pixel_intrinsic(self) -> np.ndarray:
+        """[3, 3] K with pixel (row v, column u) at (u, v), OpenCV's convention (`intrinsic` centres it at
+        (u + 0.5, v + 0.5)): the calibration a user's camera gives `sgjax.perception`."""
+        k = self.intrinsic
+        k[:2, 2] -= 0.5
+        return k
+
+    @property
     def extrinsic(self) -> np.ndarray:
         """[4, 4] camera-to-world transform (OpenCV axes)."""
         z = np.subtract(self.lookat, self.position)

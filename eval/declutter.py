@@ -223,7 +223,8 @@ def observe(scene, config: DeclutterConfig, seed: int) -> tuple[camera_lib.Obser
     obs = sensed.truth
     h, w = sensed.depth.shape
     try:
-        frame = Frame.from_depth(sensed.depth, Intrinsics.from_matrix(obs.intrinsic, w, h), extrinsics=obs.extrinsic,
+        intrinsics = Intrinsics.from_matrix(config.camera.pixel_intrinsic, w, h)  # a user's calibration's convention
+        frame = Frame.from_depth(sensed.depth, intrinsics, extrinsics=obs.extrinsic,
                                  masks=truth_masks(obs) if config.masks == "truth" else None)
     except PerceptionError as exc:
         return obs, np.zeros((0, 3), np.float32), np.zeros(0, np.int32), {"front_end": str(exc)}

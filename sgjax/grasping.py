@@ -55,7 +55,8 @@ class Grasp:
 class FramePlan:
     """grasps: best first (all objects' choices by score, then each object's alternatives by score);
     plans: the planner's `Plan` per planned object label (one entry, None, without `all_objects`), in
-    the table frame; reasons: why an object got no grasp, by label; timing: wall seconds."""
+    the table frame; reasons: why an object got no grasp, by label ("scene" without `all_objects`);
+    timing: wall seconds."""
 
     grasps: list[Grasp]
     plans: dict
@@ -121,7 +122,7 @@ def plan_frame(planner: Planner, frame: Frame, all_objects: bool = False, top: i
     for label, plan in plans.items():
         target = plan.target if label is None else label
         if plan.pose is None:
-            reasons[label if label is not None else -1] = plan.reason
+            reasons[label if label is not None else "scene"] = plan.reason
             continue
         chosen.append(_grasp(target, plan.pose, plan.width, plan.score, plan.kind, to_frame, spec))
         others += [_grasp(target, p, w, s, "alternative", to_frame, spec)

@@ -10,11 +10,12 @@ import argparse
 import json
 import os
 import sys
-from typing import Sequence
+from collections.abc import Sequence
 
 from sgjax.presets import names as preset_names
 from sgjax.utils.files import atomic_write
 
+SENSORS = ("exact", "kinect", "realsense", "stereo")  # envs.sensors.SENSORS (a test keeps them equal)
 # envs.trial.BACKENDS, spelled out here so that the CLI imports no simulator before a command runs.
 BACKEND_HELP = ("grasp trial engine: cpu (default; MuJoCo's C engine), mjx (MJX: its warp implementation on a GPU "
                 "where warp-lang is installed, else its JAX one), mjx-jax, mjx-warp")
@@ -366,7 +367,40 @@ def _cmd_candidates(args: argparse.Namespace) -> int:
     return 0
 
 
+FRAME_OPTIONS = (("depth", "--depth"), ("intrinsics", "--intrinsics"), ("depth_scale", "--depth-scale"),
+                 ("extrinsics", "--extrinsics"), ("masks", "--masks"), ("workspace_mask", "--workspace-mask"),
+                 ("all_objects", "--all-objects"), ("top", "--top"))
+CLOUD_OPTIONS = (("mask", "--mask"), ("viewpoint", "--viewpoint"))
+FORMS = "a scene cloud (sgjax plan CLOUD --mask MASK.npy) or a depth image (sgjax plan --depth D --intrinsics K)"
+
+
+def _given(args: argparse.Namespace, options) -> list[str]:
+    return [flag for name, flag in options if getattr(args, name) not in (None, False)]
+
+
 def _cmd_plan(args: argparse.Namespace) -> int:
+    """The two forms of `plan`: a scene cloud with a mask, or a depth frame; never a mix of them."""
+    frame_given, cloud_given = _given(args, FRAME_OPTIONS), _given(args, CLOUD_OPTIONS)
+    if args.cloud is not None and args.depth is not None:
+        return _fail(f"give {FORMS}, not both")
+    if args.cloud is None and args.depth is None:
+        return _fail(f"nothing to plan on: give {FORMS}")
+    if args.cloud is not None:
+        if frame_given:
+            return _fail(f"{', '.join(frame_given)}: only for a depth image (sgjax plan --depth D --intrinsics K), "
+                         f"not for a scene cloud")
+        if args.mask is None:
+            return _fail("a scene cloud needs --mask MASK.npy (one entry per point: bool target or int object labels)")
+        return _plan_cloud(args)
+    if cloud_given:
+        return _fail(f"{', '.join(cloud_given)}: only for a scene cloud (sgjax plan CLOUD --mask MASK.npy), not for a "
+                     f"depth image (--masks takes instance ids per pixel)")
+    if args.intrinsics is None:
+        return _fail("--depth needs --intrinsics K (the camera's calibration: .json, .yaml/.yml or a 3x3 .npy)")
+    return _plan_frame(args)
+
+
+def _plan_cloud(args: argparse.Namespace) -> int:
     import numpy as np
 
     from sgjax.geometry.pointcloud import CloudError, load_cloud
@@ -429,6 +463,203 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     return 0 if plan.kind is not None else 1
 
 
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split()) or type(exc).__name__
+
+
+def _read_file(path: str, what: str, read):
+    """read(path); a file that cannot be read raises ValueError naming the path (FileNotFoundError as is)."""
+    try:
+        return read(path)
+    except FileNotFoundError:
+        raise
+    except (ValueError, OSError, EOFError) as exc:
+        message = _one_line(exc)
+        if message.startswith(path):  # perception's readers name the file first
+            raise ValueError(message) from None
+        if type(exc).__name__ == "UnidentifiedImageError":  # Pillow's, naming the path
+            message = "not an image file Pillow can read"
+        raise ValueError(f"{path}: cannot read the {what} ({message})") from None
+
+
+def _load_image(path: str):
+    import numpy as np
+
+    if path.lower().endswith(".npy"):
+        return np.load(path, allow_pickle=False)
+    from PIL import Image
+
+    with Image.open(path) as image:
+        return np.asarray(image)
+
+
+def _frame_json(frame, result, timing: dict) -> dict:
+    """The depth form's JSON document (README, docs/real-camera.md)."""
+    import numpy as np
+
+    objects = [{"id": i, "points": int(np.sum(frame.labels == i)),
+                "centroid": np.round(frame.object_points(i).mean(0), 6).tolist()} for i in frame.object_ids]
+    reasons = {str(key): why for key, why in result.reasons.items()}
+    return {"frame": frame.frame, "table": [round(float(v), 6) for v in frame.table.plane], "objects": objects,
+            "grasps": [g.to_dict() for g in result.grasps], "reasons": reasons, "timing": timing}
+
+
+def _plan_frame(args: argparse.Namespace) -> int:
+    import time
+
+    import numpy as np
+
+    from sgjax import perception
+
+    start = time.perf_counter()
+    scale = 1000.0 if args.depth_scale is None else args.depth_scale
+    top = 1 if args.top is None else args.top
+    if not (np.isfinite(scale) and scale > 0):
+        return _fail(f"--depth-scale must be a number > 0 (depth units per metre; 1000: millimetres), got {scale:g}")
+    if top < 1:
+        return _fail(f"--top must be >= 1, got {top}")
+    try:
+        depth = _read_file(args.depth, "depth image", lambda path: perception.read_depth(path, scale))
+        intrinsics = _read_file(args.intrinsics, "intrinsics", perception.read_intrinsics)
+        extrinsics = None if args.extrinsics is None else _read_file(args.extrinsics, "extrinsics",
+                                                                     perception.read_extrinsics)
+        masks = None
+        for path, what in ((args.masks, "masks"), (args.workspace_mask, "workspace mask")):
+            if path is not None:
+                if not os.path.isfile(path):
+                    raise FileNotFoundError(f"{path}: no such {what} file")
+                image = _read_file(path, what, _load_image)
+                masks = image if what == "masks" else masks
+        frame = perception.Frame.from_depth(depth, intrinsics, depth_scale=scale, extrinsics=extrinsics,
+                                            masks=args.masks, workspace=args.workspace_mask, seed=args.seed)
+    except (ValueError, OSError) as exc:  # PerceptionError is a ValueError, FileNotFoundError an OSError
+        return _fail(_one_line(exc))
+    if not frame.object_ids and masks is not None and not np.any(np.asarray(masks) > 0):
+        return _fail(f"{args.masks}: the masks hold no object (every id is 0, the background)")
+    if not frame.object_ids:
+        on_table = int(np.sum(frame.labels == perception.TABLE))
+        how = ("no masked pixel has a depth point on or above the table" if frame.segmentation == "masks"
+               else "no cluster of points stands on the table")
+        return _fail(f"no object found above the table: {how} ({len(frame.points)} points, {on_table} on the table; "
+                     f"table plane {np.round(frame.table.plane, 4).tolist()})")
+    perception_s = time.perf_counter() - start
+
+    from sgjax import presets
+    from sgjax.grasping import plan_frame
+    from sgjax.planner import Planner
+    from sgjax.stage1.database import DBConfig, load_database, load_database_file
+
+    try:
+        db = load_database_file(args.db) if args.db else load_database(DBConfig.small() if args.small_db else DBConfig())
+        planner = Planner(model=args.model, db=db, config=presets.get(args.preset))
+        setup_s = time.perf_counter() - start - perception_s
+        result = plan_frame(planner, frame, all_objects=args.all_objects, top=top, seed=args.seed)
+    except (ValueError, FileNotFoundError) as exc:
+        return _fail(_one_line(exc))
+    plans = [p for p in result.plans.values() if p is not None]
+    timing = {"perception_s": perception_s, "setup_s": setup_s, "plan_s": result.timing["plan_s"],
+              "stage1_s": sum(p.timing.get("stage1_s", 0.0) for p in plans),
+              "stage2_s": sum(p.timing.get("stage2_s", 0.0) for p in plans)}
+    timing = {k: round(float(v), 4) for k, v in timing.items()}
+    timing["compiled"] = any(bool(p.timing.get("compiled")) for p in plans)
+
+    wrote = None
+    if args.png:
+        from sgjax.draw import draw_on_image
+
+        poses = np.stack([g.pose for g in result.grasps]) if result.grasps else np.zeros((0, 4, 4))
+        to_camera = np.eye(4) if frame.extrinsics is None else np.linalg.inv(frame.extrinsics)
+        image = np.where(np.isfinite(depth), depth, 0.0)
+        shown = min(len(poses), 20)
+        names = [f"{g.object}{'' if g.kind != 'alternative' else '*'}" for g in result.grasps]
+        title = (f"{len(result.grasps)} grasp(s) on {len(frame.object_ids)} object(s), {frame.frame} frame"
+                 + ("; * alternative" if any(g.kind == "alternative" for g in result.grasps) else ""))
+        try:
+            draw_on_image(args.png, image, intrinsics.K, to_camera @ poses, np.array([g.width for g in result.grasps]),
+                          labels_image=frame.label_image(), scores=np.array([g.score for g in result.grasps]),
+                          names=names, max_grasps=shown, title=title, points=frame.points[frame.labels > 0],
+                          scene_points=frame.points[frame.labels == perception.TABLE], frame_poses=poses, up=frame.table.normal)
+        except OSError as exc:
+            return _fail(f"{args.png}: cannot write the picture ({_one_line(exc)})")
+        wrote = args.png
+    timing["total_s"] = round(time.perf_counter() - start, 4)
+
+    if args.json:
+        print(json.dumps(_frame_json(frame, result, timing)))
+    else:
+        _print_frame_plan(frame, result, timing)
+        if wrote:
+            print(f"wrote {wrote}")
+    return 0 if result.grasps else 1
+
+
+def _print_frame_plan(frame, result, timing: dict) -> None:
+    import numpy as np
+
+    r = lambda a, d=4: np.round(np.asarray(a, np.float64), d).tolist()
+    where = "camera frame (no extrinsics: x right, y down, z forward)" if frame.frame == "camera" else "world frame"
+    sizes = ", ".join(f"{i} ({int(np.sum(frame.labels == i))} points)" for i in frame.object_ids)
+    print(f"{where}; table plane {r(frame.table.plane)}")
+    print(f"{len(frame.object_ids)} object(s) from {frame.segmentation}: {sizes}")
+    for g in result.grasps:
+        print(f"  object {g.object}: {g.kind} grasp, score {g.score:.3f}, center {r(g.center)} m, approach {r(g.approach, 3)}, "
+              f"width {g.width:.4f} m")
+    for key, why in result.reasons.items():
+        print(f"  {'no grasp' if key == 'scene' else f'object {key}: no grasp'}: {why}")
+    compiled = " (includes compilation)" if timing["compiled"] else ""
+    print(f"  timing: perception {timing['perception_s']:.3f} s, planning {timing['plan_s']:.3f} s (stage 1 "
+          f"{timing['stage1_s']:.3f} s, stage 2 {timing['stage2_s']:.3f} s){compiled}, total {timing['total_s']:.3f} s")
+
+
+def _cmd_example_frame(args: argparse.Namespace) -> int:
+    import numpy as np
+    from PIL import Image
+
+    from envs import camera as camera_lib
+    from envs import scene as scene_lib
+    from envs import sensors
+    from eval.benchmark import resolve_objects
+    from eval.declutter import get_setting
+    from sgjax.draw import draw_on_image
+    from sgjax.utils.files import atomic_write_text
+
+    if args.objects < 1:
+        return _fail(f"--objects must be >= 1, got {args.objects}")
+    try:
+        assets, set_name, _ = resolve_objects(get_setting("seen-10"), objects=None if args.set == "seen" else args.set)
+    except (ValueError, FileNotFoundError) as exc:  # an object set not prepared: sgjax objects prepare says how
+        return _fail(_one_line(exc))
+    # What a real camera sees around a table (floor, robot stand, wall): camera-only, the physics unchanged.
+    scene = scene_lib.make_scene(assets, args.objects, args.seed, scene_lib.SceneConfig(surroundings=True))
+    camera = camera_lib.CameraConfig()
+    sensed = sensors.sense(scene, camera, args.camera, seed=args.seed)
+    truth = sensed.truth
+    depth_mm = np.clip(np.round(np.nan_to_num(sensed.depth) * 1000.0), 0, 65535).astype(np.uint16)
+    ids = np.where(truth.labels >= 0, truth.labels + 1, 0)
+    masks = ids.astype(np.uint8 if ids.max() < 256 else np.uint16)
+    K = camera.pixel_intrinsic  # OpenCV's pixel convention, as a user's calibration gives it
+    h, w = depth_mm.shape
+
+    os.makedirs(args.dir, exist_ok=True)
+    path = lambda name: os.path.join(args.dir, name)
+    for name, array in (("depth.png", depth_mm), ("masks.png", masks)):
+        atomic_write(path(name), lambda tmp, a=array: Image.fromarray(a).save(tmp, format="PNG"))
+    atomic_write_text(path("intrinsics.json"), json.dumps({"K": K.tolist(), "width": w, "height": h}) + "\n")
+    atomic_write_text(path("extrinsics.json"), json.dumps({"T": truth.extrinsic.tolist()}) + "\n")
+    visible = [int(i) for i in np.unique(ids[ids > 0])]
+    draw_on_image(path("picture.png"), depth_mm / 1000.0, K, labels_image=ids, cmap="viridis", tint=False,
+                  title=f"{args.camera} depth, {len(visible)} object(s) of {set_name} (masks outlined)")
+    names = {i: os.path.basename(str(scene.assets[i - 1].name)) for i in visible}
+    print(f"wrote {args.dir}: depth.png (16-bit mm, {w}x{h}, {args.camera} camera), intrinsics.json, extrinsics.json "
+          f"(camera-to-world), masks.png (ids 0 = background), picture.png")
+    print("objects: " + ", ".join(f"{i} {n}" for i, n in names.items()))
+    d = args.dir.rstrip("/") or "/"
+    print(f"next: sgjax plan --depth {os.path.join(d, 'depth.png')} --intrinsics {os.path.join(d, 'intrinsics.json')}"
+          f" --json   (add --extrinsics {os.path.join(d, 'extrinsics.json')} for world coordinates, "
+          f"--masks {os.path.join(d, 'masks.png')} for these objects' masks)")
+    return 0
+
+
 def _cmd_declutter(args: argparse.Namespace) -> int:
     from eval.benchmark import result_json, run_benchmark
     from eval.declutter import DeclutterConfig
@@ -448,7 +679,8 @@ def _cmd_declutter(args: argparse.Namespace) -> int:
             objects=args.objects,
             n_objects=args.n_objects,
             method_options=options,
-            config=DeclutterConfig(backend=args.backend, remember_failures=not args.no_memory),
+            config=DeclutterConfig(backend=args.backend, remember_failures=not args.no_memory, sensor=args.camera,
+                                   masks=args.masks),
             pictures=args.pictures,
             progress=not args.quiet,
         )
@@ -535,24 +767,61 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser(
         "plan",
-        help="plan one grasp: Stage-1 candidates, E-RNet evaluation and refinement (exit 1: no grasp)",
-        description="Plan one grasp (SuperGrasp Stage 1 + Stage 2). Exit status: 0 a grasp, 1 no grasp "
-        "(the reason is printed), 2 bad input or a missing model/database.",
+        help="plan a grasp on a scene cloud or a depth image: Stage-1 candidates, E-RNet evaluation and refinement",
+        description="Plan a grasp (SuperGrasp Stage 1 + Stage 2) on a scene cloud (sgjax plan CLOUD --mask MASK.npy) "
+        "or on a depth image and its calibration (sgjax plan --depth D --intrinsics K: the table and the objects "
+        "standing on it are found, grasps come back in the camera's frame, or the world's with --extrinsics; "
+        "--json: one document, docs/real-camera.md). Exit status: 0 a grasp, 1 no grasp (the reason is printed), "
+        "2 bad input (one line on stderr) or a missing model/database.",
     )
-    p.add_argument("cloud", help="scene cloud: .npy (N x 3, metres), .ply or .pcd")
+    p.add_argument("cloud", nargs="?", help="scene cloud: .npy (N x 3, metres), .ply or .pcd (the cloud form; "
+                   "or give --depth)")
     p.add_argument(
-        "--mask", required=True, help=".npy, one entry per point: bool (the target) or int object labels (< 0: background)"
+        "--mask", help="the cloud form: .npy, one entry per point: bool (the target) or int object labels (< 0: background)"
     )
-    p.add_argument("--viewpoint", type=float, nargs=3, metavar=("X", "Y", "Z"), help="camera position (default: origin)")
+    p.add_argument("--viewpoint", type=float, nargs=3, metavar=("X", "Y", "Z"),
+                   help="the cloud form: camera position (default: origin)")
+    p.add_argument("--depth", metavar="D", help="the depth form: a depth image, 16-bit PNG (see --depth-scale) or float "
+                   ".npy/.npz in metres; 0 or NaN: no depth")
+    p.add_argument("--intrinsics", metavar="K", help="the depth form: the camera's intrinsics, JSON {\"K\": 3x3} or "
+                   "{fx, fy, cx, cy} (+ width, height), ROS CameraInfo YAML or a 3x3 .npy (OpenCV convention)")
+    p.add_argument("--depth-scale", type=float, metavar="S", help="a depth PNG's units per metre (default 1000: mm)")
+    p.add_argument("--extrinsics", metavar="T", help="camera-to-world 4x4 (.json: a list or {\"T\": ...}; .npy): plan and "
+                   "answer in world coordinates (default: the camera's, x right, y down, z forward)")
+    p.add_argument("--masks", metavar="M", help="instance ids per pixel (PNG or .npy, 0 = background): the objects "
+                   "(default: found by segmenting what stands on the table)")
+    p.add_argument("--workspace-mask", metavar="W", help="pixels to use (PNG or .npy, nonzero = in)")
+    p.add_argument("--all-objects", action="store_true", help="the depth form: a grasp for every object (default: the best one)")
+    p.add_argument("--top", type=int, metavar="K",
+                   help="the depth form: up to K grasps per planned object, the chosen one and K-1 alternatives (default 1)")
     p.add_argument("--model", metavar="RUN_DIR", help="an E-RNet `sgjax train` run directory (default: the shipped model)")
     p.add_argument("--preset", default="default", choices=preset_names(),
                    help="the planner's named configuration (sgjax.presets; default: today's SuperGrasp)")
     p.add_argument("--db", help="a primitive database file (default: the cached default database)")
     p.add_argument("--small-db", action="store_true", help="use the small database (built in seconds)")
-    p.add_argument("--json", action="store_true", help="print the plan as JSON")
-    p.add_argument("--png", metavar="OUT.png", help="draw the cloud with the chosen grasp")
+    p.add_argument("--json", action="store_true", help="print the plan as one JSON document")
+    p.add_argument("--png", metavar="OUT.png", help="draw the grasps: on the cloud (cloud form), on the image and the "
+                   "cloud (depth form)")
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=_cmd_plan)
+
+    p = sub.add_parser(
+        "example-frame",
+        help="write a simulated depth frame to try `sgjax plan --depth` on: depth, intrinsics, extrinsics, masks, picture",
+        description="Drop objects of the seen set on a simulated table (with a floor, a robot stand and a wall around "
+        "it), render the default camera and write DIR/depth.png (16-bit, millimetres), DIR/intrinsics.json "
+        "({\"K\", \"width\", \"height\"}, OpenCV convention), DIR/extrinsics.json (camera-to-world), DIR/masks.png "
+        "(instance ids, 0 = background) and DIR/picture.png.",
+    )
+    p.add_argument("dir", metavar="DIR", help="output folder (created)")
+    p.add_argument("--camera", default="exact", choices=SENSORS,
+                   help="the depth: exact (default) or a sensor model's (envs.sensors: kinect, realsense, stereo)")
+    p.add_argument("--objects", type=int, default=6, metavar="N", help="objects dropped on the table (default 6)")
+    p.add_argument("--set", default="seen", metavar="NAME",
+                   help="the object set (default seen, the seen-10 benchmark's; tiny: five solids, built in seconds) "
+                   "or a folder of meshes")
+    p.add_argument("--seed", type=int, default=0, metavar="S", help="the scene's and the sensor noise's seed")
+    p.set_defaults(func=_cmd_example_frame)
 
     objects_parser = sub.add_parser("objects", help="object sets for simulation: prepare (cached) and list")
     objects_sub = objects_parser.add_subparsers(dest="objects_command", required=True)
@@ -706,6 +975,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--small-db", action="store_true", help="the small primitive database (Stage-1 methods; tests)")
     p.add_argument("--backend", default="cpu", help=BACKEND_HELP)
+    p.add_argument("--camera", default="exact", choices=SENSORS,
+                   help="the depth the method sees: exact (default) or a sensor model's (envs.sensors), through the "
+                        "front end of a real frame (sgjax.perception)")
+    p.add_argument("--masks", default="truth", choices=("truth", "clusters"),
+                   help="objects from the true instance masks (default) or from clustering the points above the table")
     p.add_argument("--pictures", type=int, default=3, help="draw the first this many scenes (default 3)")
     p.add_argument(
         "--no-memory", action="store_true",

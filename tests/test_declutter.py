@@ -705,3 +705,19 @@ def test_sensor_and_mask_choices_are_checked_and_the_cli_offers_each_sensor():
         DeclutterConfig(sensor="lidar")
     with pytest.raises(ValueError, match="unknown masks 'sam'"):
         DeclutterConfig(masks="sam")
+
+
+def test_the_exact_sensors_frame_is_the_exact_render_cloud(objects):
+    """Through the front end with the exact sensor, every point the method gets is a point of the exact
+    render (the pixel convention of `CameraConfig.pixel_intrinsic` is the user's)."""
+    from envs.camera import observe
+
+    config = dataclasses.replace(CONFIG, sensor="exact", masks="clusters", extra_attempts=0)
+    method = Recorder()
+    run = run_scene(method, objects, N_OBJECTS, seed=0, index=0, config=config, setting="tiny-4")
+    exact = observe(declutter.make_benchmark_scene(objects, N_OBJECTS, 0, 0, config), config.camera,
+                    seed=run.log["scene_seed"])
+    points = method.seen[0][0]
+    from scipy.spatial import cKDTree
+
+    assert cKDTree(exact.points).query(points)[0].max() < 1e-5

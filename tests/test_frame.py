@@ -132,8 +132,10 @@ def test_noisy_depth_still_finds_the_table_and_the_objects():
 
 def test_depth_in_the_wrong_unit_is_refused_by_name():
     depth, _ = render(SEPARATE)
-    with pytest.raises(PerceptionError, match="median depth is .* is depth_scale"):
+    with pytest.raises(PerceptionError, match="median depth is .* is the depth in metres"):
         Frame.from_depth(depth * 1000.0, K)  # millimetres given as metres
+    with pytest.raises(PerceptionError, match="median depth is .* is depth_scale .1 units per metre. right"):
+        Frame.from_depth(np.round(depth * 1000).astype(np.uint16), K, depth_scale=1.0)
     frame = Frame.from_depth(np.round(depth * 1000).astype(np.uint16), K)  # raw 16-bit: depth_scale 1000
     assert len(frame.object_ids) == 3
 

@@ -266,13 +266,26 @@ def scene_cloud(
     return out, mask, out_labels
 
 
-def table_plane(points: np.ndarray, labels: np.ndarray) -> tuple[float, float, float, float] | None:
-    """The table as (0, 0, 1, -z) with z the median height of the table points (labels < 0), or None."""
+def table_plane(points: np.ndarray, labels: np.ndarray, up=(0.0, 0.0, 1.0)) -> tuple[float, float, float, float] | None:
+    """The table as a plane (a, b, c, d) (free space a x + b y + c z + d > 0, `PlannerConfig.support_plane`'s
+    convention) of normal n = up / |up| through the table points' (labels < 0) median height h along n:
+    (n, -h); None without table points. up [3]: the frame's up direction, world z by default (the
+    simulator's frames; then the plane is (0, 0, 1, -z) with z the median of the table points' z, computed
+    as before `up` existed); in the camera frame of a depth image, the table's normal towards the camera.
+    ValueError for an up that is zero, not finite or not 3 numbers."""
+    n = np.asarray(up, np.float64)
+    length = float(np.linalg.norm(n)) if n.shape == (3,) else float("nan")
+    if not (np.isfinite(length) and length > 0):
+        raise ValueError(f"table_plane: up must be a finite non-zero 3-vector, got {up!r}")
     table = np.asarray(labels) < 0
     if not table.any():
         return None
-    z = float(np.median(np.asarray(points)[table, 2]))
-    return (0.0, 0.0, 1.0, -z)
+    n = n / length
+    if n[0] == 0.0 and n[1] == 0.0 and n[2] == 1.0:  # z up: the height is z itself (bit for bit as always)
+        z = float(np.median(np.asarray(points)[table, 2]))
+        return (0.0, 0.0, 1.0, -z)
+    h = float(np.median(np.asarray(points, np.float64)[table] @ n))
+    return (float(n[0]), float(n[1]), float(n[2]), -h)
 
 
 def same_cloud(a: np.ndarray, b: np.ndarray, tolerance: float) -> bool:

@@ -125,8 +125,11 @@ def read_extrinsics(path: str | os.PathLike) -> np.ndarray:
     if suffix == ".npy":
         T = np.load(path, allow_pickle=False)
     elif suffix == ".json":
-        with open(path) as f:
-            data = json.load(f)
+        try:
+            with open(path) as f:
+                data = json.load(f)
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"{path}: not valid JSON ({exc})") from None
         T = data.get("T", data.get("camera_to_world")) if isinstance(data, dict) else data
     else:
         raise ValueError(f"{path}: extrinsics must be .json or .npy, got {suffix or 'no suffix'}")

@@ -20,8 +20,11 @@ def read_depth(path: str | os.PathLike, depth_scale: float = 1000.0) -> np.ndarr
     if suffix == ".png":
         from PIL import Image
 
-        with Image.open(path) as image:
-            raw = np.asarray(image)
+        try:
+            with Image.open(path) as image:
+                raw = np.asarray(image)
+        except OSError as exc:  # Pillow's UnidentifiedImageError among them
+            raise ValueError(f"{path}: cannot read the depth PNG ({exc})") from None
         if raw.ndim != 2 or raw.dtype.kind not in "ui":
             raise ValueError(f"{path}: a depth PNG must be one 16-bit (or 8-bit) channel, got {raw.dtype} {raw.shape}")
         depth = raw.astype(np.float64) / depth_scale
@@ -59,3 +62,4 @@ def back_project(depth: np.ndarray, intrinsics: Intrinsics, min_depth: float = 0
     z = depth[v, u]
     points = np.stack([z * (u - intrinsics.cx) / intrinsics.fx, z * (v - intrinsics.cy) / intrinsics.fy, z], axis=1)
     return points, np.stack([v, u], axis=1)
+

@@ -95,6 +95,7 @@ class Frame:
         camera-to-world [4, 4] or a file. masks: None (cluster the points above the table), or instance
         ids [H, W] (0 = background) or a PNG of them. workspace: None, or bool [H, W] (or a PNG, nonzero
         = in) of the pixels to use. seed: the table fit's. -> Frame; PerceptionError for unusable input."""
+        scaled = _is_path(depth) and str(depth).lower().endswith(".png") or np.asarray(depth).dtype.kind in "ui"
         depth = _depth(depth, depth_scale)
         if not isinstance(intrinsics, Intrinsics):
             intrinsics = read_intrinsics(intrinsics) if _is_path(intrinsics) else Intrinsics.from_matrix(intrinsics)
@@ -109,8 +110,9 @@ class Frame:
             raise PerceptionError("the depth image has no valid pixel (all zero, NaN or inf)")
         median = float(np.median(depth[::4, ::4][valid[::4, ::4]])) if valid[::4, ::4].any() else float(np.median(depth[valid]))
         if not PLAUSIBLE_DEPTH[0] <= median <= PLAUSIBLE_DEPTH[1]:
+            hint = f"is depth_scale ({depth_scale:g} units per metre) right?" if scaled else "is the depth in metres?"
             raise PerceptionError(f"the median depth is {median:.4g} m, outside {PLAUSIBLE_DEPTH[0]}-{PLAUSIBLE_DEPTH[1]} m: "
-                                  f"is depth_scale ({depth_scale:g} units per metre) right?")
+                                  f"{hint}")
         if workspace is not None:
             workspace = _image(workspace, size, "workspace mask") != 0
             depth = np.where(workspace, depth, 0.0)
