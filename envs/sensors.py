@@ -93,6 +93,7 @@ from scipy import ndimage
 from envs import camera as camera_lib
 from envs import raycast
 from envs import scene as scene_lib
+from sgjax.perception import OTHER, Frame, Intrinsics
 
 AXIAL_MODELS = ("none", "disparity", "nguyen2012")
 
@@ -419,3 +420,36 @@ def sense(scene: scene_lib.Scene, camera: camera_lib.CameraConfig, sensor: Senso
     shadow = occlusion_shadow(scene, camera, truth, sensor.baseline, sensor.shadow_tolerance, data)
     depth = degrade(truth.depth, sensor, rng, camera.intrinsic[0, 0] / sensor.focal_px, shadow)
     return Sensed(depth=depth, truth=truth)
+
+
+def truth_masks(observation: camera_lib.Observation) -> np.ndarray:
+    """The exact render's instance ids [H, W] as a segmenter's masks: object index + 1, 0 = background."""
+    return np.where(observation.labels >= 0, observation.labels + 1, 0)
+
+
+def front_end(sensed: Sensed, camera: camera_lib.CameraConfig, masks: str = "truth") -> Frame:
+    """What the front end of a user's frame (`sgjax.perception.Frame.from_depth`) makes of a sensed
+    frame, given the camera's calibration (OpenCV's pixel convention, `pixel_intrinsic`) and pose:
+    world points, the fitted table, objects from the exact render's masks ("truth": labels = object
+    index + 1) or from segmentation ("clusters"). Raises `sgjax.perception.PerceptionError`."""
+    h, w = sensed.depth.shape
+    ids = truth_masks(sensed.truth) if masks == "truth" else None
+    return Frame.from_depth(sensed.depth, Intrinsics.from_matrix(camera.pixel_intrinsic, w, h),
+                            extrinsics=sensed.truth.extrinsic, masks=ids)
+
+
+def sensed_observation(scene: scene_lib.Scene, camera: camera_lib.CameraConfig, sensor: SensorModel | str,
+                       seed: int = 0) -> camera_lib.Observation:
+    """An Observation of `scene` as the front end sees it through `sensor` with perfect masks: the
+    sensor's depth, the points of the table and of the objects the front end found (point_labels:
+    object index, or scene.TABLE), the exact render's pixel labels. What labelling records for training
+    on a sensor's view; "exact" gives `camera.observe`'s observation itself."""
+    if (get_sensor(sensor) if isinstance(sensor, str) else sensor).is_exact:
+        return camera_lib.observe(scene, camera, seed=seed)
+    sensed = sense(scene, camera, sensor, seed)
+    frame = front_end(sensed, camera, "truth")
+    keep = frame.labels != OTHER
+    labels = np.where(frame.labels[keep] > 0, frame.labels[keep] - 1, scene_lib.TABLE).astype(np.int32)
+    truth = sensed.truth
+    return camera_lib.Observation(depth=sensed.depth, labels=truth.labels, points=frame.points[keep].astype(np.float32),
+                                  point_labels=labels, intrinsic=truth.intrinsic, extrinsic=truth.extrinsic)

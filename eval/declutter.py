@@ -52,7 +52,7 @@ from envs import trial as trial_lib
 from eval.numerics import numerics_label
 from eval.protocol import Decision, Method
 from sgjax.geometry.gripper import GripperSpec
-from sgjax.perception import OTHER, Frame, Intrinsics, PerceptionError
+from sgjax.perception import OTHER, PerceptionError
 
 LOG_VERSION = 1
 NO_OBJECT = "no_object"
@@ -206,11 +206,6 @@ def make_benchmark_scene(objects: Sequence, n_objects: int, seed: int, index: in
     return scene_lib.make_scene(objects, n_objects, scene_seed(seed, index), scene_config, config.gripper)
 
 
-def truth_masks(observation: camera_lib.Observation) -> np.ndarray:
-    """The exact render's instance ids [H, W] as a segmenter's masks: object index + 1, 0 = background."""
-    return np.where(observation.labels >= 0, observation.labels + 1, 0)
-
-
 def observe(scene, config: DeclutterConfig, seed: int) -> tuple[camera_lib.Observation, np.ndarray, np.ndarray, dict]:
     """What the method sees of `scene`: (the exact observation, points [P, 3], labels [P], info). The
     exact render's own cloud and labels, or through a sensor the front end's (module doc); info: the
@@ -221,11 +216,8 @@ def observe(scene, config: DeclutterConfig, seed: int) -> tuple[camera_lib.Obser
         return obs, obs.points, obs.point_labels, {}
     sensed = sensors_lib.sense(scene, config.camera, config.sensor, seed=seed)
     obs = sensed.truth
-    h, w = sensed.depth.shape
     try:
-        intrinsics = Intrinsics.from_matrix(config.camera.pixel_intrinsic, w, h)  # a user's calibration's convention
-        frame = Frame.from_depth(sensed.depth, intrinsics, extrinsics=obs.extrinsic,
-                                 masks=truth_masks(obs) if config.masks == "truth" else None)
+        frame = sensors_lib.front_end(sensed, config.camera, config.masks)
     except PerceptionError as exc:
         return obs, np.zeros((0, 3), np.float32), np.zeros(0, np.int32), {"front_end": str(exc)}
     keep = frame.labels != OTHER

@@ -269,7 +269,8 @@ def _cmd_label(args: argparse.Namespace) -> int:
             extra["held_out_objects"] = ()
             print(f"no held-out objects in {args.objects!r} (name some with --held-out-objects)", file=sys.stderr)
         config = label.LabelConfig(
-            n_objects=args.n_objects, targets_per_scene=args.targets_per_scene, object_set=args.objects, seed=args.seed, **extra
+            n_objects=args.n_objects, targets_per_scene=args.targets_per_scene, object_set=args.objects, seed=args.seed,
+            sensor=args.camera, **extra
         )
         if args.ray is not None:
             from train.label_ray import label_ray
@@ -931,6 +932,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="directory of .npz shards (train/dataset.py format)")
     p.add_argument("--objects", default="seen", help="object set name or a folder of meshes (default: seen)")
     p.add_argument("--backend", default="cpu", help=BACKEND_HELP)
+    p.add_argument("--camera", default="exact", choices=SENSORS,
+                   help="the depth the samples see: exact (default) or a sensor model's, through the front end of a "
+                        "real frame with perfect masks (envs.sensors), for a network that meets a real camera")
     p.add_argument("--n-objects", type=int, default=5, help="objects per scene (paper: 5)")
     p.add_argument("--targets-per-scene", type=int, default=2, help="objects whose grasps are executed per scene")
     p.add_argument(

@@ -175,5 +175,7 @@ def test_bad_frames_get_one_clear_error(case, message):
 def test_segment_config_is_checked():
     with pytest.raises(ValueError, match="tolerance > 0"):
         SegmentConfig(tolerance=0.0)
-    with pytest.raises(ValueError, match="min_points >= 1"):
+    with pytest.raises(ValueError, match="min_points, normal_window and normal_span >= 1"):
         SegmentConfig(min_points=0)
+    with pytest.raises(ValueError, match="0 < concave_deg <= 180"):
+        SegmentConfig(concave_deg=0.0)

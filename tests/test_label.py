@@ -13,7 +13,7 @@ from envs.objects import tiny_object_set
 from sgjax.stage1.pipeline import Stage1
 from train import dataset
 from train import sources
-from train.label import Labellers, LabelConfig, label, label_scene, scene_seed, summarize
+from train.label import Labellers, LabelConfig, label, label_scene, labelled_scene, scene_seed, summarize
 
 CONFIG = LabelConfig(
     n_objects=3,
@@ -279,3 +279,27 @@ def test_a_labelled_directory_resumes_after_a_config_field_was_added(tmp_path):
     check_out_dir(str(tmp_path), LabelConfig())
     with pytest.raises(ValueError, match="different labelling config"):
         check_out_dir(str(tmp_path), dataclasses.replace(LabelConfig(), n_objects=3))
+
+
+def test_samples_through_a_sensor_see_its_noisy_frame(setup):
+    """`LabelConfig.sensor`: the same scene and trials, the crops and candidates from the sensor's frame
+    as the front end makes it (perfect masks)."""
+    from envs import sensors
+
+    objects, labellers = setup
+    noisy = dataclasses.replace(CONFIG, sensor="realsense")
+    assert json.loads(noisy.to_json())["sensor"] == "realsense" and LabelConfig.from_json(noisy.to_json()) == noisy
+    samples, cloud, stats = label_scene(0, objects, labellers, noisy)
+    _, exact_cloud, _ = label_scene(0, objects, labellers, CONFIG)
+    assert len(samples["label"]) >= 1 and stats["trials"] == 4 * len(samples["label"])
+    dataset.validate(samples, fields=dataset.LABEL_FIELDS)
+    assert len(cloud) > 1000 and not np.array_equal(np.sort(cloud, axis=0), np.sort(exact_cloud, axis=0))
+    # The observation: the table and the objects the front end found, labelled by object index.
+    scene, _ = labelled_scene(0, objects, noisy)
+    obs = sensors.sensed_observation(scene, noisy.camera, "realsense", seed=scene_seed(noisy.seed, 0))
+    assert set(np.unique(obs.point_labels)) <= {-1, *range(scene.n_objects)}
+    truth = sensors.sensed_observation(scene, noisy.camera, "exact", seed=scene_seed(noisy.seed, 0))
+    for k in np.unique(obs.point_labels[obs.point_labels >= 0]):  # each object's points where the exact render has it
+        assert np.linalg.norm(obs.object_cloud(k).mean(0) - truth.object_cloud(k).mean(0)) < 0.01
+    with pytest.raises(ValueError, match="exact, kinect, realsense, stereo"):
+        dataclasses.replace(CONFIG, sensor="sonar")

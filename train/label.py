@@ -45,6 +45,7 @@ import numpy as np
 
 from envs import camera as camera_lib
 from envs import scene as scene_lib
+from envs import sensors
 from envs.outcome import Outcome
 from envs.trial import TrialConfig, check_backend, run_grasp_with_refinements
 from sgjax.geometry.gripper import GripperSpec
@@ -75,6 +76,9 @@ class LabelConfig:
     held_out_objects / held_out_object_every: see the module docstring; () for none.
     voxel, max_scene_points, workspace_margin: the Stage-2 scene cloud (`scene_cloud`, a
     `sgjax.stage2.scene_cloud.SceneCloudConfig`) cropped to the workspace plus this margin.
+    sensor: the depth the samples are made from (`envs.sensors`): "exact" (the exact render) or a sensor
+    model's frame seen through the front end of a real frame with perfect masks
+    (`envs.sensors.sensed_observation`), so that E-RNet can learn a real camera's crops.
     """
 
     n_objects: int = 5
@@ -97,6 +101,7 @@ class LabelConfig:
     # whole scene): a few kept grasps per target are all a label source needs, at a fraction of the cost.
     gpd: GPDConfig = GPDConfig(num_samples=32, max_points=2048)
     perturbation: sources.Perturbation = sources.Perturbation()
+    sensor: str = "exact"
     # Retired (docs/experiments.md): the relabelled-matches source's count; a saved default still loads.
     RETIRED_FIELDS: ClassVar[dict] = {"relabel_extra": 5}
 
@@ -116,6 +121,7 @@ class LabelConfig:
                 raise ValueError(f"LabelConfig.per_source: {name} must have >= 0 grasps, got {count}")
         if len({name for name, _ in per_source}) != len(per_source) or not any(c for _, c in per_source):
             raise ValueError(f"LabelConfig.per_source must name each source once and ask for some grasps, got {per_source}")
+        sensors.get_sensor(self.sensor)  # raises naming the sensors
         if self.gpd.spec != self.spec:
             raise ValueError("LabelConfig.gpd.spec differs from the Stage-1 gripper spec")
         object.__setattr__(self, "per_source", per_source)
@@ -342,7 +348,7 @@ def label_scene(
     except ValueError as exc:  # an unloadable mesh; recorded, the run goes on
         stats["skipped"] = f"scene failed: {exc}"
         return (*_no_samples(), stats)
-    obs = camera_lib.observe(scene, config.camera, seed=seed)
+    obs = sensors.sensed_observation(scene, config.camera, config.sensor, seed=seed)
     timing["scene"] = time.perf_counter() - began
     counts = np.bincount(obs.point_labels[obs.point_labels >= 0], minlength=scene.n_objects)
     visible = np.flatnonzero((counts >= config.min_target_points) & scene.present)

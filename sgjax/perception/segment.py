@@ -10,7 +10,7 @@ along the table's normal, fall outside the table's visible extent (the robot's s
 beyond the edge) are background, as is a cluster whose surface goes on below the table (a stand right
 beside it, its legs) and anything below the table. Touching objects without
 a crease still merge and an object seen in two pieces (an occluder in front of it) splits:
-docs/perception.md measures how often on simulated frames.
+docs/real-camera.md measures how often on simulated frames.
 """
 
 from __future__ import annotations
@@ -49,8 +49,11 @@ class SegmentConfig:
         if not (self.tolerance > 0 and self.min_height >= 0 and self.max_height > self.min_height):
             raise ValueError(f"need tolerance > 0 and 0 <= min_height < max_height, got {self.tolerance}, "
                              f"{self.min_height}, {self.max_height}")
-        if self.min_points < 1:
-            raise ValueError(f"need min_points >= 1, got {self.min_points}")
+        if self.min_points < 1 or self.normal_window < 1 or self.normal_span < 1:
+            raise ValueError(f"need min_points, normal_window and normal_span >= 1, got {self.min_points}, "
+                             f"{self.normal_window} and {self.normal_span}")
+        if not (self.grazing > 0 and 0 < self.concave_deg <= 180):
+            raise ValueError(f"need grazing > 0 and 0 < concave_deg <= 180, got {self.grazing} and {self.concave_deg}")
 
 
 def table_noise(height: np.ndarray) -> float:
