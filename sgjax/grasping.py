@@ -24,9 +24,11 @@ import numpy as np
 
 from sgjax.geometry.gripper import GripperSpec, closing_centre, near_grasps
 from sgjax.perception.frame import Frame
+from sgjax.perception.segment import OTHER
 from sgjax.planner import Plan, Planner
 
 TABLE_PLANE = (0.0, 0.0, 1.0, 0.0)  # the table in its own frame
+SCENE_MARGIN = 0.1  # metres of the frame kept around the objects for Stage 2
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -103,19 +105,29 @@ def plan_frame(planner: Planner, frame: Frame, all_objects: bool = False, top: i
     start = time.perf_counter()
     to_frame = frame.table_frame()
     to_table = np.linalg.inv(to_frame)
-    points = frame.points @ to_table[:3, :3].T + to_table[:3, 3]
+    # The table and the objects, as the benchmark hands them to a method: what the front end left
+    # unassigned (noise above the table, anything below or beyond it) would be taken for obstacles.
+    keep = frame.labels != OTHER
+    points = frame.points[keep] @ to_table[:3, :3].T + to_table[:3, 3]
+    labels = frame.labels[keep]
     view = to_table[:3, :3] @ frame.camera_position + to_table[:3, 3]
     if avoid is not None:
         avoid = to_table @ np.asarray(avoid, np.float64).reshape(-1, 4, 4)
     spec = planner.config.spec
     config = planner.config
-    planner.config = dataclasses.replace(config, support_plane=TABLE_PLANE)
+    changes = {"support_plane": TABLE_PLANE}
+    if config.scene_cloud.bounds is None and (labels > 0).any():
+        # E-RNet's scene cloud around the objects (as labelling crops it to the workspace), so that a
+        # wide frame does not thin out the points its crops were trained on.
+        lo, hi = points[labels > 0].min(0) - SCENE_MARGIN, points[labels > 0].max(0) + SCENE_MARGIN
+        bounds = ((lo[0], lo[1], -0.01), (hi[0], hi[1], max(hi[2], 1.0)))
+        changes["scene_cloud"] = dataclasses.replace(config.scene_cloud, bounds=bounds)
+    planner.config = dataclasses.replace(config, **changes)
     try:
         if all_objects:
-            plans = {label: planner.plan_masked(points, frame.labels == label, view, seed, avoid)
-                     for label in frame.object_ids}
+            plans = {label: planner.plan_masked(points, labels == label, view, seed, avoid) for label in frame.object_ids}
         else:
-            plans = {None: planner.plan(points, frame.labels, view, seed, avoid)}
+            plans = {None: planner.plan(points, labels, view, seed, avoid)}
     finally:
         planner.config = config
     chosen, others, reasons = [], [], {}
