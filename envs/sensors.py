@@ -93,7 +93,7 @@ from scipy import ndimage
 from envs import camera as camera_lib
 from envs import raycast
 from envs import scene as scene_lib
-from sgjax.perception import OTHER, Frame, Intrinsics
+from sgjax.perception import Frame, Intrinsics
 
 AXIAL_MODELS = ("none", "disparity", "nguyen2012")
 
@@ -447,9 +447,8 @@ def sensed_observation(scene: scene_lib.Scene, camera: camera_lib.CameraConfig, 
     if (get_sensor(sensor) if isinstance(sensor, str) else sensor).is_exact:
         return camera_lib.observe(scene, camera, seed=seed)
     sensed = sense(scene, camera, sensor, seed)
-    frame = front_end(sensed, camera, "truth")
-    keep = frame.labels != OTHER
-    labels = np.where(frame.labels[keep] > 0, frame.labels[keep] - 1, scene_lib.TABLE).astype(np.int32)
+    points, labels = front_end(sensed, camera, "truth").table_and_objects()
+    labels = np.where(labels > 0, labels - 1, scene_lib.TABLE).astype(np.int32)
     truth = sensed.truth
-    return camera_lib.Observation(depth=sensed.depth, labels=truth.labels, points=frame.points[keep].astype(np.float32),
+    return camera_lib.Observation(depth=sensed.depth, labels=truth.labels, points=points.astype(np.float32),
                                   point_labels=labels, intrinsic=truth.intrinsic, extrinsic=truth.extrinsic)

@@ -52,7 +52,7 @@ from envs import trial as trial_lib
 from eval.numerics import numerics_label
 from eval.protocol import Decision, Method
 from sgjax.geometry.gripper import GripperSpec
-from sgjax.perception import OTHER, PerceptionError
+from sgjax.perception import PerceptionError
 
 LOG_VERSION = 1
 NO_OBJECT = "no_object"
@@ -220,9 +220,9 @@ def observe(scene, config: DeclutterConfig, seed: int) -> tuple[camera_lib.Obser
         frame = sensors_lib.front_end(sensed, config.camera, config.masks)
     except PerceptionError as exc:
         return obs, np.zeros((0, 3), np.float32), np.zeros(0, np.int32), {"front_end": str(exc)}
-    keep = frame.labels != OTHER
+    points, labels = frame.table_and_objects()
     info = {"objects_found": len(frame.object_ids), "table": [round(v, 5) for v in frame.table.plane]}
-    return obs, frame.points[keep].astype(np.float32), frame.labels[keep], info
+    return obs, points.astype(np.float32), labels, info
 
 
 def run_scene(

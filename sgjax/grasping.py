@@ -24,7 +24,6 @@ import numpy as np
 
 from sgjax.geometry.gripper import GripperSpec, closing_centre, near_grasps
 from sgjax.perception.frame import Frame
-from sgjax.perception.segment import OTHER
 from sgjax.planner import Plan, Planner
 
 TABLE_PLANE = (0.0, 0.0, 1.0, 0.0)  # the table in its own frame
@@ -105,11 +104,8 @@ def plan_frame(planner: Planner, frame: Frame, all_objects: bool = False, top: i
     start = time.perf_counter()
     to_frame = frame.table_frame()
     to_table = np.linalg.inv(to_frame)
-    # The table and the objects, as the benchmark hands them to a method: what the front end left
-    # unassigned (noise above the table, anything below or beyond it) would be taken for obstacles.
-    keep = frame.labels != OTHER
-    points = frame.points[keep] @ to_table[:3, :3].T + to_table[:3, 3]
-    labels = frame.labels[keep]
+    points, labels = frame.table_and_objects()  # as the benchmark hands a frame to a method
+    points = points @ to_table[:3, :3].T + to_table[:3, 3]
     view = to_table[:3, :3] @ frame.camera_position + to_table[:3, 3]
     if avoid is not None:
         avoid = to_table @ np.asarray(avoid, np.float64).reshape(-1, 4, 4)

@@ -63,6 +63,13 @@ class Frame:
         """[n, 3] the points of object `object_id`."""
         return self.points[self.labels == object_id]
 
+    def table_and_objects(self) -> tuple[np.ndarray, np.ndarray]:
+        """What a planner is handed: the points [M, 3] of the table and the objects and their labels [M]
+        (TABLE, 1..K); the rest (noise above the table, anything below or beyond it) would be taken for
+        obstacles."""
+        keep = self.labels != OTHER
+        return self.points[keep], self.labels[keep]
+
     def label_image(self) -> np.ndarray:
         """[H, W] int32 the label of each pixel; OTHER where the frame has no point."""
         image = np.full(self.image_size, OTHER, np.int32)
