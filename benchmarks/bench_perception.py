@@ -7,7 +7,7 @@ hand; prints two markdown tables).
 Frames: the benchmark's scenes of `setting` (scene seeds as `eval.declutter.scene_seed`, with the
 table's surroundings) seen by the default 640x480 camera through each sensor model (`envs.sensors`).
 
-Speed: median CPU milliseconds (`median_ms`) of back-projection, the table fit, the segmentation, and
+Speed: median wall milliseconds (`median_ms`; on an idle machine) of back-projection, the table fit, the segmentation, and
 `sgjax.perception.Frame.from_depth` as a whole, over the frames and `repeats` calls each.
 
 Segmentation, against the exact render's instance masks, for every object with at least 50 pixels in
@@ -62,13 +62,13 @@ def grade(frame, truth: np.ndarray) -> np.ndarray:
 
 
 def median_ms(fn, repeats: int) -> float:
-    """Median milliseconds of fn() over `repeats` calls: CPU time of this process (the front end is
-    single-threaded NumPy, so on an idle machine this is its wall time; on a busy one, what it would be)."""
+    """Median wall milliseconds of fn() over `repeats` calls (run it on an idle machine: CPU time would
+    count BLAS's threads twice over)."""
     runs = []
     for _ in range(repeats):
-        start = time.process_time()
+        start = time.perf_counter()
         fn()
-        runs.append(time.process_time() - start)
+        runs.append(time.perf_counter() - start)
     return 1000.0 * float(np.median(runs))
 
 
@@ -104,7 +104,7 @@ def main() -> None:
         speed.append((sensor, *np.median(parts, axis=0)))
         quality.append((sensor, *grades))
 
-    print(f"Front end on {args.setting} frames (seed {args.seed}, {args.scenes} scenes, 640x480), median CPU ms:\n")
+    print(f"Front end on {args.setting} frames (seed {args.seed}, {args.scenes} scenes, 640x480), median wall ms:\n")
     print("| sensor | back-projection | table | segmentation | Frame.from_depth |")
     print("|---|---:|---:|---:|---:|")
     for sensor, *t in speed:
