@@ -825,3 +825,27 @@ def test_obstacle_voxel_grid_keeps_every_occupied_cell_of_a_dense_crop(stage):
     assert mask.sum() == 600 and np.allclose(np.sort(points[mask], 0), np.sort(obstacles[-600:], 0))
     with pytest.raises(ValueError, match="obstacle_voxel"):
         Stage1Config(obstacle_voxel=-0.001)
+
+
+def test_the_databases_parameterisations_on_the_host_are_the_jax_ones_bit_for_bit():
+    """`matching.db_parameterisations` (NumPy, used by `MatchDB.from_db`) against `parameterisations`
+    (JAX, the queries'): the shipped database and edge cases at the rule's thresholds."""
+    import jax.numpy as jnp
+
+    from sgjax.stage1 import matching
+    from sgjax.stage1.database import DBConfig, load_database
+
+    db = load_database(DBConfig())
+    rng = np.random.default_rng(0)
+    cfg = matching.MatchConfig()
+    edge_e2 = np.float32([0.0, cfg.eps_tol, np.nextafter(np.float32(cfg.eps_tol), 1), 1.0, 2.0 - cfg.eps_tol, 2.0])
+    scales = [np.asarray(db.sq_scale), rng.uniform(0.01, 0.1, (500, 3)),
+              np.repeat(np.float32([[0.05, 0.05, 0.02], [0.05, 0.05 * (1 - cfg.axis_tol), 0.02]]), 3, 0)]
+    epsilons = [np.asarray(db.sq_epsilon), rng.uniform(0.1, 2.0, (500, 2)),
+                np.stack([np.full(6, 0.5, np.float32), edge_e2], -1)]
+    for scale, eps in zip(scales, epsilons):
+        host = matching.db_parameterisations(scale, eps, cfg)
+        device = matching.parameterisations(jnp.asarray(scale, jnp.float32), jnp.asarray(eps, jnp.float32), cfg)
+        for a, b in zip(host, device):
+            np.testing.assert_array_equal(a, np.asarray(b))
+    assert host[2][:, 1].any() and not host[2][:, 1].all()  # the rule applies to some edge cases, not all

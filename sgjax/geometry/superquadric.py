@@ -196,16 +196,17 @@ def canonicalize(sq: Superquadric, eps_tol: float = 1e-3) -> Superquadric:
     return Superquadric(sq.scale, sq.epsilon, r, sq.translation)
 
 
-def duality_factor(eps2: jax.Array) -> jax.Array:
+def duality_factor(eps2: jax.Array, xp=jnp) -> jax.Array:
     """In-plane scale factor of the 45 deg dual: sqrt(2) for a square (eps2=0), 1/sqrt(2) for a diamond (eps2=2).
 
     A square of half-side a, turned by 45 deg, is a diamond (eps2 = 2) with vertices at a*sqrt(2); the
     factor is interpolated linearly in eps2 towards 1 at eps2 = 1 (a circle is its own dual).
+    xp: jnp, or np for float32 arrays on the host (the same values bit for bit, op by op).
     """
-    s2 = jnp.sqrt(2.0)
-    lower = s2 - (s2 - 1.0) * jnp.minimum(eps2, 1.0)
-    upper = 1.0 / (s2 - (s2 - 1.0) * jnp.minimum(2.0 - eps2, 1.0))
-    return jnp.where(eps2 <= 1.0, lower, upper)
+    s2 = xp.sqrt(xp.float32(2.0))
+    lower = s2 - (s2 - 1.0) * xp.minimum(eps2, 1.0)
+    upper = 1.0 / (s2 - (s2 - 1.0) * xp.minimum(2.0 - eps2, 1.0))
+    return xp.where(eps2 <= 1.0, lower, upper)
 
 
 def dual(sq: Superquadric) -> Superquadric:

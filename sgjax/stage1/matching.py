@@ -19,9 +19,11 @@ from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from sgjax.geometry.rotations import rot_z
-from sgjax.geometry.superquadric import Superquadric, equivalent_parameterisations, pose_matrix
+from sgjax.geometry.superquadric import (EPS_MAX, EPS_MIN, Superquadric, duality_factor, equivalent_parameterisations,
+                                         pose_matrix)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -64,8 +66,8 @@ class MatchDB:
     def from_db(cls, db, cfg: MatchConfig = MatchConfig()) -> MatchDB:
         """From a `sgjax.stage1.database.PrimitiveDB`."""
         poses, widths, mask = db.padded_grasps()
-        scale, eps, valid = parameterisations(jnp.asarray(db.sq_scale), jnp.asarray(db.sq_epsilon), cfg)
-        return cls(scale, eps, valid, jnp.asarray(poses), jnp.asarray(widths), jnp.asarray(mask))
+        scale, eps, valid = db_parameterisations(db.sq_scale, db.sq_epsilon, cfg)
+        return cls(*(jnp.asarray(a) for a in (scale, eps, valid, poses, widths, mask)))
 
 
 @jax.tree_util.register_dataclass
@@ -89,6 +91,25 @@ def parameterisations(scale: jax.Array, epsilon: jax.Array, cfg: MatchConfig = M
     both, applies = equivalent_parameterisations(sq, cfg.eps_tol, cfg.axis_tol)
     valid = jnp.stack([jnp.ones_like(applies), applies], -1)
     return jnp.moveaxis(both.scale, 0, -2), jnp.moveaxis(both.epsilon, 0, -2), valid
+
+
+def db_parameterisations(scale: np.ndarray, epsilon: np.ndarray, cfg: MatchConfig = MatchConfig()):
+    """`parameterisations` on the host, for the database: the same float32 values bit for bit (tested),
+    without eager JAX, which compiles its ~60 small operations anew in every process (~2 s of each new
+    planner). scale [P, 3], epsilon [P, 2] -> NumPy (scale [P, 2, 3], epsilon [P, 2, 2], valid [P, 2])."""
+    scale, epsilon = np.asarray(scale, np.float32), np.asarray(epsilon, np.float32)
+    e2 = epsilon[..., 1]
+    # As `equivalent_parameterisations` and `dual` (Python floats are weak, as in JAX).
+    near = (e2 < cfg.eps_tol) | (e2 > 2.0 - cfg.eps_tol)
+    ax, ay = scale[..., 0], scale[..., 1]
+    applies = near & (np.abs(ax - ay) / np.maximum(ax, ay) < cfg.axis_tol)
+    f = duality_factor(e2, np)
+    dual_scale = scale * np.stack([f, f, np.ones_like(f)], -1)
+    dual_eps = np.clip(np.stack([epsilon[..., 0], 2.0 - e2], -1), EPS_MIN, EPS_MAX)
+    other_scale = np.where(applies[..., None], dual_scale, scale)
+    other_eps = np.where(applies[..., None], dual_eps, epsilon)
+    valid = np.stack([np.ones_like(applies), applies], -1)
+    return np.stack([scale, other_scale], -2), np.stack([epsilon, other_eps], -2), valid
 
 
 def geometric_mean(scale: jax.Array) -> jax.Array:
