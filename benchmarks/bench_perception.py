@@ -19,27 +19,22 @@ largest cluster is mostly other objects), "split" (its largest cluster is pure b
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import time
 
 import numpy as np
 
 
 def frames(setting: str, seed: int, scenes: int, sensor: str) -> list:
-    from envs import scene as scene_lib
+    """The sensed frames of the benchmark's first `scenes` scenes, as the harness makes them through a sensor."""
     from envs import sensors
     from eval.benchmark import resolve_objects
-    from eval.declutter import DeclutterConfig, get_setting, scene_seed
+    from eval.declutter import DeclutterConfig, get_setting, make_benchmark_scene
 
     chosen = get_setting(setting)
     assets = resolve_objects(chosen)[0]
-    config = DeclutterConfig()
-    scene_config = dataclasses.replace(config.scene, surroundings=True)
-    out = []
-    for index in range(scenes):
-        scene = scene_lib.make_scene(assets, chosen.n_objects, scene_seed(seed, index), scene_config, config.gripper)
-        out.append(sensors.sense(scene, config.camera, sensor, seed=index))
-    return out
+    config = DeclutterConfig(sensor=sensor, masks="clusters")  # through a sensor: the surroundings in the scene
+    return [sensors.sense(make_benchmark_scene(assets, chosen.n_objects, seed, index, config), config.camera, sensor,
+                          seed=index) for index in range(scenes)]
 
 
 def grade(frame, truth: np.ndarray) -> np.ndarray:
@@ -81,8 +76,11 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=10)
     args = parser.parse_args()
 
-    from eval.declutter import DeclutterConfig
+    from envs import sensors
+    from envs.camera import CameraConfig
     from sgjax.perception import Frame, Intrinsics, back_project, fit_table, segment_objects
+
+    camera = CameraConfig()  # the harness's
 
     speed, quality = [], []
     for sensor in args.sensors.split(","):
@@ -90,7 +88,7 @@ def main() -> None:
         for sensed in frames(args.setting, args.seed, args.scenes, sensor):
             obs = sensed.truth
             h, w = sensed.depth.shape
-            K = Intrinsics.from_matrix(DeclutterConfig().camera.pixel_intrinsic, w, h)
+            K = Intrinsics.from_matrix(camera.pixel_intrinsic, w, h)
             points, pixels = back_project(sensed.depth, K)
             table = fit_table(points)
             parts.append([
@@ -99,7 +97,7 @@ def main() -> None:
                 median_ms(lambda: segment_objects(points, pixels, (h, w), table, np.zeros(3), 1.0 / K.fx), args.repeats),
                 median_ms(lambda: Frame.from_depth(sensed.depth, K), args.repeats),
             ])
-            frame = Frame.from_depth(sensed.depth, K, extrinsics=obs.extrinsic)
+            frame = sensors.front_end(sensed, camera, "clusters")
             grades += grade(frame, obs.labels[frame.pixels[:, 0], frame.pixels[:, 1]])
         speed.append((sensor, *np.median(parts, axis=0)))
         quality.append((sensor, *grades))

@@ -23,6 +23,7 @@ import time
 import numpy as np
 
 from sgjax.geometry.gripper import GripperSpec, closing_centre, near_grasps
+from sgjax.perception.camera import to_world
 from sgjax.perception.frame import Frame
 from sgjax.planner import Plan, Planner
 
@@ -105,12 +106,12 @@ def plan_frame(planner: Planner, frame: Frame, all_objects: bool = False, top: i
     to_frame = frame.table_frame()
     to_table = np.linalg.inv(to_frame)
     points, labels = frame.table_and_objects()  # as the benchmark hands a frame to a method
-    points = points @ to_table[:3, :3].T + to_table[:3, 3]
-    view = to_table[:3, :3] @ frame.camera_position + to_table[:3, 3]
+    points = to_world(points, to_table)
+    view = to_world(frame.camera_position[None], to_table)[0]
     if avoid is not None:
         avoid = to_table @ np.asarray(avoid, np.float64).reshape(-1, 4, 4)
-    spec = planner.config.spec
     config = planner.config
+    spec = config.spec
     changes = {"support_plane": TABLE_PLANE}
     if config.scene_cloud.bounds is None and (labels > 0).any():
         # E-RNet's scene cloud around the objects (as labelling crops it to the workspace), so that a

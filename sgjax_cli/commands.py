@@ -478,20 +478,7 @@ def _read_file(path: str, what: str, read):
         message = _one_line(exc)
         if message.startswith(path):  # perception's readers name the file first
             raise ValueError(message) from None
-        if type(exc).__name__ == "UnidentifiedImageError":  # Pillow's, naming the path
-            message = "not an image file Pillow can read"
         raise ValueError(f"{path}: cannot read the {what} ({message})") from None
-
-
-def _load_image(path: str):
-    import numpy as np
-
-    if path.lower().endswith(".npy"):
-        return np.load(path, allow_pickle=False)
-    from PIL import Image
-
-    with Image.open(path) as image:
-        return np.asarray(image)
 
 
 def _frame_json(frame, result, timing: dict) -> dict:
@@ -511,6 +498,7 @@ def _plan_frame(args: argparse.Namespace) -> int:
     import numpy as np
 
     from sgjax import perception
+    from sgjax.perception.camera import existing_file
 
     start = time.perf_counter()
     scale = 1000.0 if args.depth_scale is None else args.depth_scale
@@ -520,19 +508,20 @@ def _plan_frame(args: argparse.Namespace) -> int:
     if top < 1:
         return _fail(f"--top must be >= 1, got {top}")
     try:
-        depth = _read_file(args.depth, "depth image", lambda path: perception.read_depth(path, scale))
+        existing_file(args.depth, "depth image")  # the depth's error first, as its option comes first
         intrinsics = _read_file(args.intrinsics, "intrinsics", perception.read_intrinsics)
         extrinsics = None if args.extrinsics is None else _read_file(args.extrinsics, "extrinsics",
                                                                      perception.read_extrinsics)
-        masks = None
+        images = {}  # each read once, here, so that its errors name the option's file
         for path, what in ((args.masks, "masks"), (args.workspace_mask, "workspace mask")):
             if path is not None:
                 if not os.path.isfile(path):
                     raise FileNotFoundError(f"{path}: no such {what} file")
-                image = _read_file(path, what, _load_image)
-                masks = image if what == "masks" else masks
-        frame = perception.Frame.from_depth(depth, intrinsics, depth_scale=scale, extrinsics=extrinsics,
-                                            masks=args.masks, workspace=args.workspace_mask, seed=args.seed)
+                images[what] = _read_file(path, what, lambda p, w=what: perception.read_image(p, w))
+        masks = images.get("masks")
+        # The depth by its path: the front end reads it (and knows a PNG's scale from a float file's metres).
+        frame = perception.Frame.from_depth(args.depth, intrinsics, depth_scale=scale, extrinsics=extrinsics,
+                                            masks=masks, workspace=images.get("workspace mask"), seed=args.seed)
     except (ValueError, OSError) as exc:  # PerceptionError is a ValueError, FileNotFoundError an OSError
         return _fail(_one_line(exc))
     if not frame.object_ids and masks is not None and not np.any(np.asarray(masks) > 0):
@@ -570,7 +559,7 @@ def _plan_frame(args: argparse.Namespace) -> int:
 
         poses = np.stack([g.pose for g in result.grasps]) if result.grasps else np.zeros((0, 4, 4))
         to_camera = np.eye(4) if frame.extrinsics is None else np.linalg.inv(frame.extrinsics)
-        image = np.where(np.isfinite(depth), depth, 0.0)
+        image = perception.read_depth(args.depth, scale)  # the picture's background (only with --png)
         shown = min(len(poses), 20)
         names = [f"{g.object}{'' if g.kind != 'alternative' else '*'}" for g in result.grasps]
         title = (f"{len(result.grasps)} grasp(s) on {len(frame.object_ids)} object(s), {frame.frame} frame"

@@ -13,9 +13,9 @@ Plain NumPy over arrays; files are read with Pillow and PyYAML.
 
 from sgjax.perception.camera import Intrinsics, read_extrinsics, read_intrinsics, to_world
 from sgjax.perception.depth import back_project, read_depth
-from sgjax.perception.frame import Frame, PerceptionError
+from sgjax.perception.frame import Frame, PerceptionError, read_image
 from sgjax.perception.segment import OTHER, TABLE, SegmentConfig, segment_objects
 from sgjax.perception.table import TablePlane, fit_table
 
 __all__ = ["OTHER", "TABLE", "Frame", "Intrinsics", "PerceptionError", "SegmentConfig", "TablePlane", "back_project",
-           "fit_table", "read_depth", "read_extrinsics", "read_intrinsics", "segment_objects", "to_world"]
+           "fit_table", "read_depth", "read_extrinsics", "read_image", "read_intrinsics", "segment_objects", "to_world"]

@@ -134,16 +134,25 @@ def read_extrinsics(path: str | os.PathLike) -> np.ndarray:
     else:
         raise ValueError(f"{path}: extrinsics must be .json or .npy, got {suffix or 'no suffix'}")
     try:
+        return rigid_extrinsics(T)
+    except ValueError as exc:
+        raise ValueError(f"{path}: {exc}") from None
+
+
+def rigid_extrinsics(T) -> np.ndarray:
+    """T as a float64 camera-to-world [4, 4], checked: numeric, finite, its rotation proper (orthonormal,
+    determinant +1, within 1e-3) and its last row (0, 0, 0, 1); ValueError naming what is wrong."""
+    try:
         T = np.asarray(T, np.float64)
     except (TypeError, ValueError):
-        raise ValueError(f"{path}: extrinsics are not a numeric 4x4 matrix") from None
+        raise ValueError("extrinsics are not a numeric 4x4 matrix") from None
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        raise ValueError(f"{path}: extrinsics must be a finite 4x4 camera-to-world matrix, got shape {T.shape}")
+        raise ValueError(f"extrinsics must be a finite 4x4 camera-to-world matrix, got shape {T.shape}")
     R = T[:3, :3]
     if np.abs(R @ R.T - np.eye(3)).max() > 1e-3 or abs(np.linalg.det(R) - 1.0) > 1e-3:
-        raise ValueError(f"{path}: the extrinsics' rotation is not a proper rotation (orthonormal, det +1)")
+        raise ValueError("the extrinsics' rotation is not a proper rotation (orthonormal, det +1)")
     if np.abs(T[3] - (0.0, 0.0, 0.0, 1.0)).max() > 1e-9:
-        raise ValueError(f"{path}: the extrinsics' last row must be (0, 0, 0, 1), got {T[3].tolist()}")
+        raise ValueError(f"the extrinsics' last row must be (0, 0, 0, 1), got {T[3].tolist()}")
     return T
 
 

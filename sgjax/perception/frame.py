@@ -18,9 +18,11 @@ import os
 
 import numpy as np
 
-from sgjax.perception.camera import Intrinsics, existing_file, read_extrinsics, read_intrinsics, to_world
+from sgjax.perception.camera import (Intrinsics, existing_file, read_extrinsics, read_intrinsics, rigid_extrinsics,
+                                     to_world)
 from sgjax.perception.depth import back_project, read_depth
-from sgjax.perception.segment import OTHER, TABLE, SegmentConfig, height_threshold, plane_basis, segment_objects
+from sgjax.perception.segment import (OTHER, TABLE, SegmentConfig, height_threshold, plane_basis, segment_objects,
+                                      table_noise)
 from sgjax.perception.table import TablePlane, fit_table
 
 MIN_TABLE_SHARE = 0.05  # a plane holding fewer of the frame's points is not taken for the table
@@ -107,7 +109,10 @@ class Frame:
         if not isinstance(intrinsics, Intrinsics):
             intrinsics = read_intrinsics(intrinsics) if _is_path(intrinsics) else Intrinsics.from_matrix(intrinsics)
         if extrinsics is not None:
-            extrinsics = read_extrinsics(extrinsics) if _is_path(extrinsics) else _rigid(extrinsics)
+            try:
+                extrinsics = read_extrinsics(extrinsics) if _is_path(extrinsics) else rigid_extrinsics(extrinsics)
+            except ValueError as exc:
+                raise PerceptionError(str(exc)) from None
         size = depth.shape
         if intrinsics.width is not None and (intrinsics.height, intrinsics.width) != size:
             raise PerceptionError(f"the depth image is {size[1]}x{size[0]} pixels but the intrinsics are for "
@@ -169,32 +174,26 @@ def _depth(depth, depth_scale: float) -> np.ndarray:
     return depth
 
 
-def _rigid(T) -> np.ndarray:
-    T = np.asarray(T, np.float64)
-    R = T[:3, :3] if T.shape == (4, 4) else None
-    if R is None or not np.all(np.isfinite(T)) or np.abs(R @ R.T - np.eye(3)).max() > 1e-3 \
-            or abs(np.linalg.det(R) - 1) > 1e-3 or np.abs(T[3] - (0, 0, 0, 1)).max() > 1e-9:
-        raise PerceptionError(f"extrinsics must be a rigid camera-to-world 4x4 matrix, got shape {T.shape}")
-    return T
+def read_image(path: str | os.PathLike, what: str = "image") -> np.ndarray:
+    """A per-pixel image (masks' instance ids, a workspace mask) from a PNG or a `.npy`; errors name the
+    file and `what` it was to be."""
+    path, suffix = existing_file(path, what)
+    if suffix == ".npy":
+        return np.load(path, allow_pickle=False)
+    from PIL import Image
+
+    try:
+        with Image.open(path) as image:
+            return np.asarray(image)
+    except OSError as exc:  # Pillow's UnidentifiedImageError among them
+        raise PerceptionError(f"{path}: cannot read the {what} ({exc})") from None
 
 
 def _image(value, size: tuple[int, int], what: str) -> np.ndarray:
     """An integer image [H, W] from an array or a PNG / .npy file, checked against the depth's size."""
+    name = os.fspath(value) if _is_path(value) else f"the {what}"
     if _is_path(value):
-        path, suffix = existing_file(value, what)
-        if suffix == ".npy":
-            value = np.load(path, allow_pickle=False)
-        else:
-            from PIL import Image
-
-            try:
-                with Image.open(path) as image:
-                    value = np.asarray(image)
-            except OSError as exc:
-                raise PerceptionError(f"{path}: cannot read the {what} ({exc})") from None
-        name = path
-    else:
-        name = f"the {what}"
+        value = read_image(value, what)
     value = np.asarray(value)
     if value.ndim == 3 and value.shape[2] in (3, 4):  # an RGB(A) picture of it: every channel must agree
         if np.any(value[..., :3] != value[..., :1]):
@@ -215,7 +214,7 @@ def _mask_labels(ids: np.ndarray, pixels: np.ndarray, points: np.ndarray, table:
     if (ids < 0).any():
         raise PerceptionError("masks: instance ids must be >= 0 (0 = background)")
     height = table.height(points)
-    threshold = height_threshold(height, segment)
+    threshold = height_threshold(table_noise(height), segment)
     point_ids = ids[pixels[:, 0], pixels[:, 1]]
     labels = np.where(np.abs(height) <= threshold, TABLE, OTHER).astype(np.int32)
     obj = (point_ids > 0) & (height >= -threshold)

@@ -66,9 +66,10 @@ def table_noise(height: np.ndarray) -> float:
     return float(1.4826 * np.median(np.abs(near - np.median(near))))
 
 
-def height_threshold(height: np.ndarray, config: SegmentConfig = SegmentConfig()) -> float:
-    """The height (metres) below which a point is table: max(min_height, 3 x the table's noise)."""
-    return max(config.min_height, 3.0 * table_noise(height))
+def height_threshold(noise: float, config: SegmentConfig = SegmentConfig()) -> float:
+    """The height (metres) below which a point is table, for a sensor whose noise on the table is `noise`
+    (metres, `table_noise`): max(min_height, 3 x noise)."""
+    return max(config.min_height, 3.0 * noise)
 
 
 def link_tolerance(distance: np.ndarray, pixel_angle: float, noise: float, config: SegmentConfig = SegmentConfig()
@@ -162,9 +163,10 @@ def smooth_normals(image: np.ndarray, valid: np.ndarray, viewpoint, window: int,
 def image_clusters(image: np.ndarray, member: np.ndarray, normals: np.ndarray, tolerance: np.ndarray,
                    concave_deg: float, span: int) -> np.ndarray:
     """Connected components [H, W] (int, -1 off `member`) of the member pixels, where two 4-neighbours
-    are joined when they lie within the first one's `tolerance` [H, W] of each other and no concave crease runs between the
-    surfaces on their two sides (the normals `span` pixels before the first and after the second; LCCP's
-    test: (n_a - n_b) . (p_a - p_b) < 0, and the normals more than concave_deg apart)."""
+    are joined when they lie within the first one's `tolerance` [H, W] of each other and no concave
+    crease runs between the surfaces on their two sides (the normals `span` pixels before the first and
+    after the second; LCCP's test: (n_a - n_b) . (p_a - p_b) < 0, and the normals more than concave_deg
+    apart)."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
@@ -203,7 +205,7 @@ def segment_objects(points: np.ndarray, pixels: np.ndarray, image_size: tuple[in
         raise ValueError("segment_objects: the pixels must come in row-major order (as back_project gives them)")
     height = table.height(points)
     noise = table_noise(height)
-    threshold = max(config.min_height, 3.0 * noise)  # height_threshold
+    threshold = height_threshold(noise, config)
     labels = np.full(len(points), OTHER, np.int32)
     on_plane = np.abs(height) <= threshold
     labels[on_plane] = TABLE
