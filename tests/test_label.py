@@ -303,3 +303,15 @@ def test_samples_through_a_sensor_see_its_noisy_frame(setup):
         assert np.linalg.norm(obs.object_cloud(k).mean(0) - truth.object_cloud(k).mean(0)) < 0.01
     with pytest.raises(ValueError, match="exact, kinect, realsense, stereo"):
         dataclasses.replace(CONFIG, sensor="sonar")
+
+
+def test_a_sensor_frame_without_a_table_skips_the_scene(setup):
+    """A frame the front end cannot use (here: a camera looking up, no depth at all) is recorded as a
+    skipped scene; the run goes on."""
+    from envs.camera import CameraConfig
+
+    objects, labellers = setup
+    skyward = CameraConfig(width=64, height=48, position=(0.0, 0.0, 0.5), lookat=(0.0, 0.0, 2.0), up=(0.0, 1.0, 0.0))
+    samples, _, stats = label_scene(0, objects, labellers, dataclasses.replace(CONFIG, sensor="realsense", camera=skyward))
+    assert stats["skipped"].startswith("front end: ") and "no valid pixel" in stats["skipped"]
+    assert len(samples["label"]) == 0

@@ -49,6 +49,7 @@ from envs import sensors
 from envs.outcome import Outcome
 from envs.trial import TrialConfig, check_backend, run_grasp_with_refinements
 from sgjax.geometry.gripper import GripperSpec
+from sgjax.perception import PerceptionError
 from sgjax.samplers.gpd import GPDConfig
 from sgjax.stage1.pipeline import Stage1, Stage1Config
 from sgjax.stage2.scene_cloud import SceneCloudConfig
@@ -348,7 +349,11 @@ def label_scene(
     except ValueError as exc:  # an unloadable mesh; recorded, the run goes on
         stats["skipped"] = f"scene failed: {exc}"
         return (*_no_samples(), stats)
-    obs = sensors.sensed_observation(scene, config.camera, config.sensor, seed=seed)
+    try:
+        obs = sensors.sensed_observation(scene, config.camera, config.sensor, seed=seed)
+    except PerceptionError as exc:  # a sensor's frame the front end cannot use; recorded, the run goes on
+        stats["skipped"] = f"front end: {exc}"
+        return (*_no_samples(), stats)
     timing["scene"] = time.perf_counter() - began
     counts = np.bincount(obs.point_labels[obs.point_labels >= 0], minlength=scene.n_objects)
     visible = np.flatnonzero((counts >= config.min_target_points) & scene.present)
