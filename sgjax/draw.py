@@ -14,7 +14,7 @@ import os
 
 import numpy as np
 
-from sgjax.geometry.gripper import GripperSpec
+from sgjax.geometry.gripper import GripperSpec, closing_centre
 from sgjax.utils.files import atomic_write
 
 DEFAULT_SPEC = GripperSpec()
@@ -187,7 +187,7 @@ def _image_view(ax, image, K, poses, widths, labels_image, colour_of, spec, name
         for a, b in uv[:4]:
             if np.isfinite(a).all() and np.isfinite(b).all():
                 ax.plot([a[0], b[0]], [a[1], b[1]], color=colour, linewidth=2.0)
-        tcp = project(pose[:3, 3] + 0.5 * spec.finger_length * pose[:3, 2], K)
+        tcp = project(closing_centre(pose, spec, np), K)  # the tool-centre point
         if np.isfinite(tcp).all():
             ax.plot(*tcp, "o", color=colour, markersize=3)
             if names is not None:
