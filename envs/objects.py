@@ -17,6 +17,8 @@ Object sets (`load_object_set(name)`):
     seen-20 benchmarks. "unseen" = ycb-unseen + procedural-unseen: never labelled; the unseen-10
     benchmark.
   * "all" = every set above but tiny (everything `sgjax objects prepare` builds by default).
+  * the sealed set (`envs.sealed`): procedural objects of a family kept for reporting only; built when
+    the report runs.
   * "tapered": 2 cylinders, 2 frusta and an open cup of the same sizes (solids of revolution), for
     checking that single views of tapered objects get grasps as good as cylinders' (a superquadric
     cannot taper: tests/test_tapered.py, docs/limitations.md). Never labelled.
@@ -52,7 +54,7 @@ from typing import NamedTuple
 import numpy as np
 import trimesh
 
-from envs import meshprep, procedural
+from envs import meshprep, procedural, sealed
 from envs.meshprep import MESH_EXTENSIONS, MeshPrepError, PrepConfig
 from sgjax.utils.cache import cache_dir
 from sgjax.utils.files import atomic_write, atomic_write_text
@@ -62,7 +64,7 @@ from sgjax.geometry.superquadric import Superquadric, to_mesh
 MAX_HULL_VERTICES = PrepConfig.max_hull_vertices  # MJX collides meshes as hulls; keep them small
 ASSET_FILE = "asset.json"
 OBJECT_SETS = ("tiny", "ycb", "ycb-seen", "ycb-unseen", "procedural", "procedural-unseen", "seen", "unseen", "all",
-               "tapered", "flat")
+               "tapered", "flat", sealed.SEALED_OBJECT_SET)
 
 # Size rule for the default sets (gripper opening from GripperSpec): the gripper must close across the
 # object with `GRASP_MARGIN` to spare where it lies. Objects rest mostly on their largest faces, so that
@@ -663,6 +665,8 @@ def object_sources(name: str, spec: GripperSpec | None = None) -> list[MeshSourc
         return procedural_sources()
     if name == "procedural-unseen":
         return procedural_unseen_sources()
+    if name == sealed.SEALED_OBJECT_SET:
+        return procedural_sources(sealed.SEALED_COUNT, sealed.SEALED_GENERATOR_SEED, sealed.SEALED_PREFIX)
     if os.path.isdir(os.path.expanduser(name)) or os.sep in name or name.startswith((".", "~")):
         return user_sources(name)  # a path: clear error if it is not a folder of meshes
     raise ValueError(

@@ -19,8 +19,9 @@ None for the shipped default (`sgjax/models/pointnetgpd_default` for the PointNe
 and the training command); `small_db` / `db` -- Stage 1's primitive database (s1+pointnetgpd only);
 `config` -- a `BaselineConfig`.
 
-Both networks score the scene as the labelling pipeline cropped it: the whole observation (objects
-and table) on a voxel grid of `scene_cloud.voxel` (3 mm), at most `scene_cloud.max_points` points
+Both networks score the scene as the labelling pipeline cropped it: the observation (objects and table)
+cropped to the workspace (the registry's default config, `eval.methods`: `envs.scene.stage2_scene_cloud`,
+as labelling, training and SuperGrasp), on a voxel grid of `scene_cloud.voxel` (3 mm), at most `scene_cloud.max_points` points
 (`sgjax.stage2.scene_cloud.SceneCloudConfig`, seeded). Fixed shapes, so no call after the first recompiles: the
 candidates are padded (identity pose, NaN width: invalid for both networks) to `max_candidates`
 slots; more candidates than slots -> a seeded uniform subset of the GPD-style ones, or, for Stage 1,
@@ -60,7 +61,8 @@ class BaselineConfig:
     max_candidates: candidate slots scored per plan (padded and masked).
     min_object_points, stage1_batch_sizes: as `sgjax.planner.PlannerConfig` (objects with fewer
         points are skipped; objects run through Stage 1 in chunks of these sizes).
-    scene_cloud: the scene cloud the networks crop from (as in labelling; no workspace crop).
+    scene_cloud: the scene cloud the networks crop from (sgjax knows no workspace: the benchmark's registry
+        gives the workspace crop of labelling, `envs.scene.stage2_scene_cloud`).
     eval_threshold, refine_threshold, use_refinement, refine_rescore: SuperGrasp's decision policy
         (gpd+s2), as `sgjax.planner.PlannerConfig` (refine_rescore 0: the paper's rule, the refine head alone).
     """

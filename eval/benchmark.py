@@ -18,6 +18,7 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
+from envs import sealed
 from eval import declutter, metrics, report
 from eval.declutter import DeclutterConfig
 from eval.methods import check_method, make_method
@@ -158,6 +159,7 @@ def run_benchmark(
     config: DeclutterConfig | None = None,
     pictures: int = 3,
     progress: bool = True,
+    for_report: bool = False,
 ) -> BenchmarkResult:
     """Run (or continue) `scenes` scenes of `setting` with `method` into `out`; see the module doc.
 
@@ -166,10 +168,13 @@ def run_benchmark(
         assets themselves (tests). n_objects: objects per scene instead of the setting's.
     The setting's label in logs and tables is "<object set>-<n>" (e.g. seen-10, tiny-4, mymeshes-10), and
     "@<sensor>+<masks>" after it when the method sees the scene through a sensor (seen-10@realsense+clusters).
-    pictures: draw the first this many scenes. Raises ValueError / UnknownMethod / MethodUnavailable.
+    pictures: draw the first this many scenes. for_report: the report path's run (`envs.sealed`); other runs
+    may not use a reserved seed or the sealed objects (SealedDataError).
+    Raises ValueError / UnknownMethod / MethodUnavailable.
     """
     config = config or DeclutterConfig()
     chosen = declutter.get_setting(setting)
+    sealed.check_benchmark(seed, chosen.object_set if objects is None else objects, report=for_report)
     if scenes < 1:
         raise ValueError(f"scenes must be >= 1, got {scenes}")
     n = chosen.n_objects if n_objects is None else int(n_objects)

@@ -82,11 +82,28 @@ def _supergrasp(use_refinement: bool) -> Callable[..., Method]:
 _PLANNER_OPTIONS = ("model", "small_db", "db", "config")
 
 
+def _supergrasp_pointnetgpd(model=None, small_db: bool = False, db=None, config=None) -> Method:
+    from eval.supergrasp import PlannerMethod
+    from sgjax.stage2 import pointnetgpd
+
+    return PlannerMethod("supergrasp-pointnetgpd", False, model=pointnetgpd.as_model(model), small_db=small_db, db=db,
+                         config=config)
+
+
+def _baseline_config():
+    """The baselines' settings with the workspace-cropped Stage-2 scene cloud that labelling, training and
+    SuperGrasp use: the networks score the point density they were trained on."""
+    from envs.scene import stage2_scene_cloud
+    from eval.baselines import BaselineConfig
+
+    return BaselineConfig(scene_cloud=stage2_scene_cloud())
+
+
 def _pointnetgpd(generator: str) -> Callable[..., Method]:
     def factory(model=None, small_db: bool = False, db=None, config=None) -> Method:
         from eval.baselines import PointNetGPDMethod
 
-        return PointNetGPDMethod(generator, model=model, small_db=small_db, db=db, config=config)
+        return PointNetGPDMethod(generator, model=model, small_db=small_db, db=db, config=config or _baseline_config())
 
     return factory
 
@@ -94,7 +111,7 @@ def _pointnetgpd(generator: str) -> Callable[..., Method]:
 def _gpd_s2(model=None, config=None) -> Method:
     from eval.baselines import GPDStage2Method
 
-    return GPDStage2Method(model=model, config=config)
+    return GPDStage2Method(model=model, config=config or _baseline_config())
 
 
 def _contact_graspnet(config=None) -> Method:
@@ -131,6 +148,13 @@ METHODS: dict[str, MethodInfo] = {
             _PLANNER_OPTIONS,
             _planner_missing,
             presets=True,
+        ),
+        MethodInfo(
+            "supergrasp-pointnetgpd",
+            "SuperGrasp's planner (Stage 1, every addition) with PointNetGPD in place of E-RNet (network ablation)",
+            _supergrasp_pointnetgpd,
+            _PLANNER_OPTIONS,
+            _planner_missing,
         ),
         MethodInfo("gpd", "GPD-style geometric baseline: antipodal sampling, ranked by an antipodal score", _gpd, ("config",)),
         MethodInfo(

@@ -56,7 +56,7 @@ from sgjax.stage1.fit_grasps import FitGraspConfig
 from sgjax.stage1.memory import Stage1Memory
 from sgjax.stage1.neighbours import NeighbourFitConfig
 from sgjax.stage1.pipeline import Candidates, Stage1, Stage1Config
-from sgjax.stage2 import ernet
+from sgjax.stage2 import ernet, pointnetgpd, scorers
 from sgjax.stage2.scene_cloud import SceneCloudConfig
 from sgjax.utils import exported
 from sgjax.utils.cache import enable_compilation_cache
@@ -284,10 +284,11 @@ class Plan:
         }
 
 
-def _stage2(graphdef, state, scene, scene_mask, poses, widths, slots, key, thresholds, use_refinement, *, spec):
-    """One compiled Stage 2: E-RNet scores of the candidate slots (scene [S, 3] + mask, poses [C, 4, 4],
-    widths [C], slots bool[C]) and the decision."""
-    scores = ernet.score(graphdef, state, scene, poses, widths, scene_mask, spec=spec, key=key)
+def _stage2(graphdef, state, scene, scene_mask, poses, widths, slots, key, thresholds, use_refinement, *, spec,
+            scorer=ernet.score):
+    """One compiled Stage 2: the network's scores of the candidate slots (scene [S, 3] + mask, poses
+    [C, 4, 4], widths [C], slots bool[C]; `scorer` from `scorers.scorer_for`) and the decision."""
+    scores = scorer(graphdef, state, scene, poses, widths, scene_mask, spec=spec, key=key)
     valid = scores.valid & slots
     choice = policy.select_grasp(
         poses, widths, scores.eval_prob, scores.refine_prob, valid, thresholds[0], thresholds[1], use_refinement, spec
@@ -377,15 +378,21 @@ class Planner:
     """Stage 1 + Stage 2 with the database and the E-RNet weights on the device.
 
     model: an ERNet, a `sgjax train` run directory, or None (the shipped default, `ernet.load_default_model`);
+        a PointNetGPD instead: the network ablation (`sgjax.stage2.scorers`; needs use_refinement=False);
     db: a PrimitiveDB, or None (the default database from the cache, built on first use);
     config: a `PlannerConfig` (named ones: `sgjax.presets`).
     """
 
     def __init__(self, model=None, db: PrimitiveDB | None = None, config: PlannerConfig = PlannerConfig()):
         enable_compilation_cache()  # a new process loads what an earlier one compiled
-        self.model = ernet.as_model(model)
+        # PointNetGPD in E-RNet's place is the network ablation (`scorers`): it has no refinement head.
+        self.model = model if isinstance(model, pointnetgpd.PointNetGPD) else ernet.as_model(model)
         self.config = config
-        if self.model.config.n_refinements != config.spec.num_refinements:
+        self._scorer = scorers.scorer_for(self.model)
+        if not scorers.has_refinement(self.model):
+            if config.use_refinement:
+                raise ValueError(f"{type(self.model).__name__} has no refinement head: plan with use_refinement=False")
+        elif self.model.config.n_refinements != config.spec.num_refinements:
             raise ValueError(
                 f"the E-RNet predicts {self.model.config.n_refinements} refinements but the gripper spec has "
                 f"{config.spec.num_refinements}"
@@ -792,7 +799,7 @@ class Planner:
         """(function, arguments, static key) of one Stage-2 call, for `exported.call` / `exported.ready`."""
         cfg = self.config
         return (
-            functools.partial(_stage2, self.graphdef, spec=cfg.spec),
+            functools.partial(_stage2, self.graphdef, spec=cfg.spec, scorer=self._scorer),
             (self.state, scene_pad, scene_mask, poses, widths, slots, jax.random.key(seed), thresholds,
              np.bool_(cfg.use_refinement)),
             (type(self.model).__qualname__, repr(self.model.config), cfg.spec),

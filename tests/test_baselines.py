@@ -332,6 +332,37 @@ def test_stage1_with_pointnetgpd(pointnetgpd_run, observation):
     assert sorted(zip(obj.tolist(), row.tolist())) == [(0, 0), (0, 1), (1, 0), (1, 1), (3, 0), (3, 1)]
 
 
+@pytest.mark.slow  # Stage 1's compile (shared with the planner tests in a full run)
+def test_planner_with_pointnetgpd_in_place_of_ernet(pointnetgpd_run, observation):
+    """The network ablation `supergrasp-pointnetgpd`: SuperGrasp's planner whose Stage 2 is PointNetGPD.
+    Every candidate's evaluation is PointNetGPD's probability at its pose on the planner's scene cloud,
+    there are no refinements, and the executed grasp passes the planner's threshold."""
+    from eval.supergrasp import PlannerMethod
+    from sgjax.planner import Planner, PlannerConfig
+
+    points, labels, view = observation
+    method = make_method("supergrasp-pointnetgpd", model=str(pointnetgpd_run), small_db=True)
+    assert method.name == "supergrasp-pointnetgpd" and not method.config.use_refinement
+    plan = method.full_plan(points, labels, view, seed=7)
+    s = plan.scores
+    m = len(s["eval_prob"])
+    assert m > 0 and not np.any(s["refine_prob"])
+    cands = [plan.candidates[o] for o in s["object"]]
+    poses = np.stack([c.poses[r] for c, r in zip(cands, s["object_candidate"])]).astype(np.float32)
+    widths = np.asarray([c.widths[r] for c, r in zip(cands, s["object_candidate"])], np.float32)
+    scene, mask = method.planner._scene(points, 7)
+    graphdef, state = nnx.split(method.planner.model)
+    expected = pg.score(graphdef, state, scene, poses, widths, mask, spec=SPEC, key=jax.random.key(7))
+    np.testing.assert_allclose(s["eval_prob"], np.asarray(expected.prob), atol=1e-5)
+    np.testing.assert_array_equal(s["valid"], np.asarray(expected.valid))
+    if plan.pose is not None:
+        assert plan.kind == "evaluated" and plan.score > method.config.eval_threshold
+    # A network without a refinement head cannot run the refinement branch.
+    with pytest.raises(ValueError, match="no refinement head"):
+        Planner(model=method.planner.model, db=method.planner.stage1.db, config=PlannerConfig(use_refinement=True))
+    assert isinstance(method, PlannerMethod)
+
+
 # ---------------------------------------------------------------------------------------------
 # Contact-GraspNet.
 

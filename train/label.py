@@ -46,6 +46,7 @@ import numpy as np
 from envs import camera as camera_lib
 from envs import scene as scene_lib
 from envs import sensors
+from envs import sealed
 from envs.outcome import Outcome
 from envs.trial import TrialConfig, check_backend, run_grasp_with_refinements
 from sgjax.geometry.gripper import GripperSpec
@@ -123,6 +124,7 @@ class LabelConfig:
         if len({name for name, _ in per_source}) != len(per_source) or not any(c for _, c in per_source):
             raise ValueError(f"LabelConfig.per_source must name each source once and ask for some grasps, got {per_source}")
         sensors.get_sensor(self.sensor)  # raises naming the sensors
+        sealed.check_labelling(self.object_set, self.seed)
         if self.gpd.spec != self.spec:
             raise ValueError("LabelConfig.gpd.spec differs from the Stage-1 gripper spec")
         object.__setattr__(self, "per_source", per_source)
