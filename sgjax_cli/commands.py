@@ -159,7 +159,31 @@ def _cmd_objects_list(args: argparse.Namespace) -> int:
     return 0
 
 
+# `sgjax train`'s settings: their parser defaults are None so that --recipe can tell which were given;
+# these are the values a run without --recipe takes.
+TRAIN_DEFAULTS = {
+    "epochs": 100, "batch_size": 128, "lr": 1e-3, "weight_decay": 3e-4, "decoupled_weight_decay": False,
+    "lr_decay_epochs": 0, "held_out": 0.1, "devices": 1, "model": "light", "network": "ernet", "hand_points": 0,
+    "seed": 0, "synthetic": 0,
+}
+TRAIN_OPTIONS = (("data", "--data"), ("init", "--init"), *((name, "--" + name.replace("_", "-")) for name in TRAIN_DEFAULTS))
+
+
 def _cmd_train(args: argparse.Namespace) -> int:
+    if args.recipe is not None or args.list_recipes:
+        return _train_recipe(args)
+    missing = [flag for flag in ("--data", "--out") if getattr(args, flag[2:]) is None]
+    if missing:
+        return _fail(f"train needs {' and '.join(missing)} (or --recipe NAME: a shipped checkpoint's recipe)")
+    if args.tiny:
+        return _fail("--tiny runs a recipe at test size: give --recipe NAME")
+    for name, value in TRAIN_DEFAULTS.items():
+        if getattr(args, name) is None:
+            setattr(args, name, value)
+    return _train_options(args)
+
+
+def _train_options(args: argparse.Namespace) -> int:
     from sgjax.stage2.ernet import ERNetConfig
     from train import dataset, trainer
 
@@ -205,6 +229,56 @@ def _cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
+def _train_recipe(args: argparse.Namespace) -> int:
+    """`sgjax train --recipe NAME|FILE [--out RUN] [--tiny]` and `sgjax train --list-recipes`."""
+    from train import dataset
+    from train import recipe as recipes
+
+    given = [flag for name, flag in TRAIN_OPTIONS if getattr(args, name) is not None]
+    if args.list_recipes:
+        given += [flag for flag, value in (("--out", args.out), ("--tiny", args.tiny)) if value]
+        if given:
+            return _fail(f"--list-recipes takes no other option, got {', '.join(given)}")
+        return _list_recipes()
+    if given:
+        return _fail(f"--recipe sets the data and every training setting: drop {', '.join(given)} (or train from a "
+                     "copy of the recipe file with them changed)")
+    try:
+        recipe = recipes.load_recipe(args.recipe)
+    except (FileNotFoundError, ValueError) as exc:
+        return _fail(str(exc))
+    out = args.out or os.path.join("runs", recipe.name + (recipes.TINY_SUFFIX if args.tiny else ""))
+    try:
+        result = recipes.run_recipe(recipe, out, tiny=args.tiny, progress=not args.quiet)
+    except (dataset.DatasetError, ValueError, FileNotFoundError, ImportError) as exc:
+        return _fail(str(exc))
+    except KeyboardInterrupt:
+        print(f"\ninterrupted: rerun the same command to resume (labels and epochs done are kept) in {out}", file=sys.stderr)
+        return 130
+    print(f"done: recipe {recipe.name}{' (--tiny)' if args.tiny else ''}, {len(result.train.history)} epochs; "
+          f"checkpoint {result.checkpoint} (its meta records the recipe and the commit)")
+    if args.tiny:
+        print("a --tiny run checks the recipe end to end; it is not a checkpoint to ship")
+    else:
+        print(f"to ship it as sgjax/models/{recipe.name} (the last epoch's params and meta, no optimiser state):")
+        for line in recipes.ship_lines(out, recipe.name):
+            print(f"  {line}")
+    return 0
+
+
+def _list_recipes() -> int:
+    from train import recipe as recipes
+
+    failed = 0
+    for name in recipes.recipe_names():
+        try:
+            print(recipes.describe(recipes.load_recipe(name)))
+        except (FileNotFoundError, ValueError) as exc:
+            print(f"{name}: {exc}", file=sys.stderr)
+            failed += 1
+    return 1 if failed else 0
+
+
 def _cmd_score_data(args: argparse.Namespace) -> int:
     from train import dataset, judgement, score_data
 
@@ -220,17 +294,6 @@ def _cmd_score_data(args: argparse.Namespace) -> int:
     print(f"  {judgement.summary_line(result)}\n")
     print(score_data.report_table(result))
     return 0
-
-
-def _per_source(text: str) -> tuple[tuple[str, int], ...]:
-    """"stage1=8,gpd=4" -> (("stage1", 8), ("gpd", 4)); ValueError names a malformed item."""
-    out = []
-    for item in text.split(","):
-        name, _, count = item.partition("=")
-        if not count.strip().isdigit():
-            raise ValueError(f"--per-source: {item!r} is not SOURCE=COUNT (e.g. stage1=8,gpd=8)")
-        out.append((name.strip(), int(count)))
-    return tuple(out)
 
 
 def _scene_range(scenes: str, first_scene: int | None) -> tuple[int, int]:
@@ -250,6 +313,7 @@ def _cmd_label(args: argparse.Namespace) -> int:
     from sgjax.stage1.pipeline import Stage1
     from train import label
     from train.label_ray import WorkerFailures  # imports no ray: that waits for --ray
+    from train.label import label_config
 
     try:
         first_scene, n_scenes = _scene_range(args.scenes, args.first_scene)
@@ -260,17 +324,10 @@ def _cmd_label(args: argparse.Namespace) -> int:
             raise ValueError("--workers is the number of Ray workers: it needs --ray")
         if n_scenes <= first_scene:
             raise ValueError(f"no scenes to label: the first scene {first_scene} is not below --scenes {n_scenes}")
-        extra = {}
-        if args.per_source is not None:
-            extra["per_source"] = _per_source(args.per_source)
-        if args.held_out_objects is not None:
-            extra["held_out_objects"] = () if args.held_out_objects in ("", "none") else tuple(args.held_out_objects.split(","))
-        elif args.objects != "seen":  # the default held-out objects are seen-set members
-            extra["held_out_objects"] = ()
-            print(f"no held-out objects in {args.objects!r} (name some with --held-out-objects)", file=sys.stderr)
-        config = label.LabelConfig(
-            n_objects=args.n_objects, targets_per_scene=args.targets_per_scene, object_set=args.objects, seed=args.seed,
-            sensor=args.camera, **extra
+        config = label_config(  # shared with `sgjax train --recipe`, whose label sets resume directories made here
+            objects=args.objects, seed=args.seed, camera=args.camera, n_objects=args.n_objects,
+            targets_per_scene=args.targets_per_scene, per_source=args.per_source, held_out_objects=args.held_out_objects,
+            note=lambda text: print(text, file=sys.stderr),
         )
         if args.ray is not None:
             from train.label_ray import label_ray
@@ -693,6 +750,23 @@ def _cmd_declutter(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_table_i(args: argparse.Namespace) -> int:
+    from eval import table_i
+    from eval.methods import MethodUnavailable
+
+    methods = table_i.METHODS if args.methods is None else [m.strip() for m in args.methods.split(",") if m.strip()]
+    try:
+        results, skipped = table_i.run_table_i(args.out, scenes=args.scenes, methods=methods, progress=not args.quiet)
+    except (ValueError, MethodUnavailable, FileNotFoundError) as exc:
+        return _fail(str(exc))
+    except KeyboardInterrupt:
+        print(f"\ninterrupted: rerun the same command to continue in {args.out}", file=sys.stderr)
+        return 130
+    print(f"{len(results)} runs; tables in {os.path.join(args.out, 'results.md')}" +
+          (f"; skipped: {'; '.join(skipped)}" if skipped else ""))
+    return 0
+
+
 def _cmd_baselines_setup(args: argparse.Namespace) -> int:
     from eval import cgn_setup
 
@@ -835,41 +909,55 @@ def build_parser() -> argparse.ArgumentParser:
         else:
             p.add_argument("--json", action="store_true", help="one JSON object per line")
 
-    p = sub.add_parser("train", help="train E-RNet on labelled grasp shards (an interrupted run resumes)")
-    p.add_argument("--data", required=True, nargs="+", metavar="DIR",
-                   help="directories of .npz sample shards (train/dataset.py format); several must hold disjoint scenes")
-    p.add_argument("--out", required=True, help="run directory: checkpoints/, metrics.json/.csv, curves.png")
-    p.add_argument("--epochs", type=int, default=100)
-    p.add_argument("--batch-size", type=int, default=128)
-    p.add_argument("--lr", type=float, default=1e-3)
-    p.add_argument("--weight-decay", type=float, default=3e-4)
-    p.add_argument("--decoupled-weight-decay", action="store_true", help="AdamW instead of Adam + L2 (the paper)")
-    p.add_argument(
-        "--lr-decay-epochs", type=int, default=0, metavar="N",
-        help="lower the learning rate along a half cosine to 0 over the last N epochs (0: constant, the paper); "
-        "a resumed run may add it",
+    p = sub.add_parser(
+        "train", help="train E-RNet on labelled grasp shards, or rebuild a shipped checkpoint from its recipe (resumes)"
     )
-    p.add_argument("--held-out", type=float, default=0.1, help="fraction of scenes held out (default 0.1)")
+    recipe_group = p.add_mutually_exclusive_group()
+    recipe_group.add_argument(
+        "--recipe", default=None, metavar="NAME|FILE",
+        help="label and train as a recipe says (train/recipes/NAME.toml or a .toml file): the label sets into "
+        "$SGJAX_CACHE/labels/<set>, the run into --out (default runs/<recipe>); no other training option goes with it",
+    )
+    recipe_group.add_argument("--list-recipes", action="store_true",
+                              help="print the shipped recipes: network, label scenes, epochs, estimated CPU hours")
+    p.add_argument("--tiny", action="store_true",
+                   help="with --recipe: the same recipe at test size (2 scenes per set, the tiny network, 1 epoch; label "
+                   "sets <set>-tiny, default --out runs/<recipe>-tiny)")
+    p.add_argument("--data", default=None, nargs="+", metavar="DIR",
+                   help="directories of .npz sample shards (train/dataset.py format); several must hold disjoint scenes")
+    p.add_argument("--out", default=None, help="run directory: checkpoints/, metrics.json/.csv, curves.png")
+    p.add_argument("--epochs", type=int, default=None, help="default 100")
+    p.add_argument("--batch-size", type=int, default=None, help="default 128")
+    p.add_argument("--lr", type=float, default=None, help="default 1e-3")
+    p.add_argument("--weight-decay", type=float, default=None, help="default 3e-4")
+    p.add_argument("--decoupled-weight-decay", action="store_true", default=None,
+                   help="AdamW instead of Adam + L2 (the paper)")
     p.add_argument(
-        "--devices", type=int, default=1, metavar="N",
+        "--lr-decay-epochs", type=int, default=None, metavar="N",
+        help="lower the learning rate along a half cosine to 0 over the last N epochs (default 0: constant, the "
+        "paper); a resumed run may add it",
+    )
+    p.add_argument("--held-out", type=float, default=None, help="fraction of scenes held out (default 0.1)")
+    p.add_argument(
+        "--devices", type=int, default=None, metavar="N",
         help="data-parallel training on the first N JAX devices: each batch is split over them (--batch-size must be "
         "divisible by N), parameters and optimiser state are replicated; a run resumes on any N. On a CPU, "
         "XLA_FLAGS=--xla_force_host_platform_device_count=N splits the host into N devices (default 1)",
     )
     p.add_argument(
-        "--model", choices=("light", "paper", "tiny"), default="light", help="network size (light: CPU default; tiny: smoke tests)"
+        "--model", choices=("light", "paper", "tiny"), default=None, help="network size (light: CPU default; tiny: smoke tests)"
     )
     p.add_argument(
-        "--network", choices=("ernet", "pointnetgpd"), default="ernet",
+        "--network", choices=("ernet", "pointnetgpd"), default=None,
         help="ernet (default) or the PointNetGPD baseline (trained on the same shards, `label` only)",
     )
     p.add_argument(
-        "--hand-points", type=int, default=0, metavar="N",
+        "--hand-points", type=int, default=None, metavar="N",
         help="E-RNet also sees N points of the hand's swept volume (fingers, palm, the last 5 cm of the approach); "
         "0: the paper's input, the enlarged region only",
     )
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--synthetic", type=int, default=0, metavar="N", help="first write N synthetic samples to --data")
+    p.add_argument("--seed", type=int, default=None, help="default 0")
+    p.add_argument("--synthetic", type=int, default=None, metavar="N", help="first write N synthetic samples to --data")
     p.add_argument(
         "--init", default=None, metavar="RUN_DIR",
         help="start from the latest weights of this `sgjax train` run (same --network, --model and --hand-points; "
@@ -950,7 +1038,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--method",
         required=True,
-        help="supergrasp | supergrasp-norefine | gpd | pointnetgpd | s1+pointnetgpd | gpd+s2 | contact-graspnet | "
+        help="supergrasp | supergrasp-norefine | supergrasp-pointnetgpd | gpd | pointnetgpd | s1+pointnetgpd | gpd+s2 | "
+        "contact-graspnet | "
         "oracle-topdown (diagnostic, reads ground truth)",
     )
     p.add_argument("--objects", metavar="DIR", help="a folder of meshes (or an object set name) instead of the setting's")
@@ -981,6 +1070,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help='print {"GSR", "TSR", "GA", "scenes", ...} as JSON')
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_declutter)
+
+    p = sub.add_parser(
+        "table-i",
+        help="the report: Table I on a reserved seed, the unseen setting on the sealed objects (resumable)",
+        description="Every Table I method on seen-10, seen-20 and the sealed unseen objects, on a seed reserved for "
+        "reporting (envs/sealed.py): numbers no decision saw. Run it to report, never to decide.",
+    )
+    p.add_argument("--out", required=True, help="results directory (logs, results.md; rerun to continue)")
+    p.add_argument("--scenes", type=int, default=30, help="scenes per setting (default 30)")
+    p.add_argument("--methods", default=None, metavar="M,...", help="a subset of the methods, in this order")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(func=_cmd_table_i)
 
     baselines_parser = sub.add_parser("baselines", help="set up the environments of out-of-process baselines")
     baselines_sub = baselines_parser.add_subparsers(dest="baselines_command", required=True)

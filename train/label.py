@@ -39,7 +39,7 @@ import re
 import socket
 import time
 from collections.abc import Callable, Sequence
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -155,6 +155,54 @@ class LabelConfig:
         """The config `to_json` wrote (ValueError naming a field this version does not know)."""
         return from_dict(cls, json.loads(text))
 
+
+
+# ---------------------------------------------------------------------------------------------
+# The label options of `sgjax label`, shared by the CLI and recipes.
+
+
+def parse_per_source(text: str, field: str = "--per-source") -> tuple[tuple[str, int], ...]:
+    """"stage1=8,gpd=4" -> (("stage1", 8), ("gpd", 4)); ValueError naming `field` for a malformed item."""
+    out = []
+    for item in text.split(","):
+        name, _, count = item.partition("=")
+        if not count.strip().isdigit():
+            raise ValueError(f"{field}: {item!r} is not SOURCE=COUNT (e.g. stage1=8,gpd=8)")
+        out.append((name.strip(), int(count)))
+    return tuple(out)
+
+
+def label_config(
+    *,
+    objects: str = "seen",
+    seed: int = 0,
+    camera: str = "exact",
+    n_objects: int = 5,
+    targets_per_scene: int = 2,
+    per_source: str | None = None,
+    held_out_objects: str | None = None,
+    note: Callable[[str], None] | None = None,
+):
+    """The `train.label.LabelConfig` of `sgjax label`'s options (the CLI and recipes both build it here:
+    a labelled directory compares its stored config with the requested one, so a recipe resumes a set
+    that `sgjax label` started only if both make the same config).
+
+    per_source: "SOURCE=N,..." (None: LabelConfig's default); held_out_objects: "NAME,..." or ""/"none"
+    for none (None: the default held-out objects for the seen set, none for other sets, said through
+    `note`). Raises ValueError naming the option.
+    """
+    extra: dict[str, Any] = {}
+    if per_source is not None:
+        extra["per_source"] = parse_per_source(per_source)
+    if held_out_objects is not None:
+        extra["held_out_objects"] = () if held_out_objects in ("", "none") else tuple(held_out_objects.split(","))
+    elif objects != "seen":  # the default held-out objects are seen-set members
+        extra["held_out_objects"] = ()
+        if note is not None:
+            note(f"no held-out objects in {objects!r} (name some with --held-out-objects)")
+    return LabelConfig(
+        n_objects=n_objects, targets_per_scene=targets_per_scene, object_set=objects, seed=seed, sensor=camera, **extra
+    )
 
 def read_config(out_dir: str | os.PathLike) -> LabelConfig:
     """The LabelConfig a labelled directory was made with (its label_config.json)."""

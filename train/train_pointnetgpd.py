@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 from flax import nnx
@@ -86,13 +87,15 @@ def train(
     progress: bool = True,
     on_step: Callable[[int, int], None] | None = None,
     init: str | os.PathLike | None = None,
+    extra_meta: Mapping[str, Any] | None = None,
 ) -> TrainResult:
     """Train PointNetGPD on shards in `data` (a directory, several of disjoint scenes, or validated columns) into `run_dir`.
 
     config: a TrainConfig whose `model` is a PointNetGPDConfig (None: `default_config()`). Resumes
     like `train.trainer.train`. Writes run_dir/{checkpoints/, metrics.json, metrics.csv, curves.png}
     with meta["network"] = "pointnetgpd". init: a PointNetGPD run directory to start from, as in
-    `train.trainer.train`.
+    `train.trainer.train`. extra_meta: JSON entries stored in every checkpoint's meta too (the recipe and
+    commit, `train.recipe`); it cannot replace meta["network"].
     """
     config = default_config() if config is None else config
     if not isinstance(config.model, PointNetGPDConfig):
@@ -101,5 +104,5 @@ def train(
         model = PointNetGPD(config.model, rngs=nnx.Rngs(config.seed))
     else:
         model = initial_model(init, config.model, lambda path: load_model(path)[0])
-    return run_training(model, make_steps, data, run_dir, config, meta={"network": NETWORK}, progress=progress,
-                        on_step=on_step, init=init)
+    return run_training(model, make_steps, data, run_dir, config, meta={**(extra_meta or {}), "network": NETWORK},
+                        progress=progress, on_step=on_step, init=init)

@@ -531,6 +531,7 @@ def train(
     progress: bool = True,
     on_step: Callable[[int, int], None] | None = None,
     init: str | os.PathLike | None = None,
+    extra_meta: Mapping[str, Any] | None = None,
 ) -> TrainResult:
     """Train E-RNet on shards in `data` (a directory, several of disjoint scenes, or validated columns), writing to `run_dir`.
 
@@ -538,6 +539,7 @@ def train(
     `epochs` may grow). `on_step(epoch, step)` is called after every training step (e.g. logging).
     init: a `sgjax train` run directory whose latest weights (not its optimiser state) start this run,
     e.g. to go on training a checkpoint on more data; its network config must equal `config.model`.
+    extra_meta: JSON entries stored in every checkpoint's meta (e.g. the recipe and commit, `train.recipe`).
     Writes run_dir/{checkpoints/, metrics.json, metrics.csv, curves.png}.
     """
     if config.model.n_refinements != config.spec.num_refinements:
@@ -546,7 +548,8 @@ def train(
         model = ERNet(config.model, rngs=nnx.Rngs(config.seed))
     else:
         model = initial_model(init, config.model, lambda path: load_model(path)[0])
-    return run_training(model, make_steps, data, run_dir, config, progress=progress, on_step=on_step, init=init)
+    return run_training(model, make_steps, data, run_dir, config, meta=extra_meta, progress=progress, on_step=on_step,
+                        init=init)
 
 
 def initial_model(init: str | os.PathLike, model_config, load: Callable[[str], nnx.Module]) -> nnx.Module:

@@ -24,7 +24,6 @@ PARAMS_ITEM, OPT_STATE_ITEM, META_ITEM = "params", "opt_state", "meta"
 # The shipped checkpoints (package data of sgjax, not packages).
 MODELS_DIR = Path(__file__).resolve().parent.parent / "models"
 ERNET_DEFAULT_DIR = MODELS_DIR / "ernet_default"
-ERNET_PAPER_DIR = MODELS_DIR / "ernet_paper"  # the paper-size E-RNet, trained on a GPU
 POINTNETGPD_DEFAULT_DIR = MODELS_DIR / "pointnetgpd_default"
 
 LoadModel = Callable[[str | os.PathLike], tuple[nnx.Module, dict[str, Any]]]

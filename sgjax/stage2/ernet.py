@@ -592,15 +592,3 @@ def load_default_model() -> ERNet:
 def as_model(model) -> ERNet:
     """An ERNet from None (the shipped default), a model, or a `sgjax train` run directory."""
     return checkpoint.as_model(model, ERNet, load_model, load_default_model, "an ERNet, a `sgjax train` run directory")
-
-
-def load_paper_model() -> ERNet:
-    """The shipped paper-size E-RNet (`sgjax/models/ernet_paper/`, `ERNetConfig.paper`, swept input),
-    trained on a GPU (on a CPU it takes seconds per 512 candidates): `Planner(model=load_paper_model())`.
-    Raises FileNotFoundError naming the path when it is missing."""
-    path = checkpoint.ERNET_PAPER_DIR
-    return checkpoint.load_default(
-        path, load_model,
-        f"no paper-size E-RNet checkpoint at {path}: train one with `sgjax train --model paper --hand-points 32 "
-        "--data DIR --out RUN_DIR` (a GPU: ~25 h on 2 CPU cores) and pass the run directory instead",
-    )
