@@ -47,11 +47,17 @@ class GripperPhysics:
     grip_force: 25 N per finger, the force limit of each servo. Industrial two-finger grippers give
         20-70 N; 25 N holds the project's objects (< 0.5 kg) with margin at friction 1 but still lets
         off-centre grasps of heavy objects rotate or slip, which the labels must see.
+        The gripper's own value is `GripperSpec.closing_force` (default the same 25 N): `add_gripper`
+        takes the spec's, unless grip_force was changed from this default (an experiment's override,
+        e.g. a weak grip); see `finger_force`.
     servo_kp, servo_kv: 2000 N/m and 20 N s/m, critically damped for a 0.05 kg finger
         (2 sqrt(kp m) = 20); closing commands a target 1 cm beyond closed, so the force saturates at
-        grip_force once the finger is more than ~1.3 cm from its goal, i.e. on any object.
+        grip_force once the finger is more than ~1.3 cm from its goal, i.e. on any object. For a gripper
+        whose force is above 25 N both are raised (`servo_gains`) so that this stays true.
     friction: (1.0, 0.005, 0.0001) sliding, torsional (m), rolling (m) of the finger pads, rubber-like.
         MuJoCo takes the larger coefficient of a geom pair, so pads grip at 1.0 whatever the object's.
+        The sliding coefficient comes from `GripperSpec.finger_friction` (default the same 1.0) unless
+        friction[0] was changed from this default, as for grip_force; see `pad_friction`.
     condim: 4 (sliding + torsional friction) on the pads: resists an object spinning about the closing
         axis at a single contact point, as a real soft pad does.
     pad_solref, pad_solimp: (0.005, 1.0) and (0.95, 0.99, 0.001): stiffer contacts than MuJoCo's default
@@ -84,6 +90,33 @@ class GripperPhysics:
             raise ValueError(f"GripperPhysics.condim must be 1, 3, 4 or 6, got {self.condim}")
 
 
+_DEFAULT_PHYSICS = GripperPhysics()
+
+
+def finger_force(gripper: GripperSpec, physics: GripperPhysics = _DEFAULT_PHYSICS) -> float:
+    """The force limit (N) of each finger servo: the spec's closing_force (the single source of the
+    gripper's values), or physics.grip_force where that was changed from GripperPhysics's default."""
+    if physics.grip_force != _DEFAULT_PHYSICS.grip_force:
+        return physics.grip_force
+    return gripper.closing_force
+
+
+def pad_friction(gripper: GripperSpec, physics: GripperPhysics = _DEFAULT_PHYSICS) -> tuple[float, float, float]:
+    """(sliding, torsional, rolling) friction of the finger pads: the sliding coefficient is the spec's
+    finger_friction, or physics.friction[0] where that was changed from GripperPhysics's default. (The
+    palm keeps physics.friction.)"""
+    sliding = physics.friction[0] if physics.friction[0] != _DEFAULT_PHYSICS.friction[0] else gripper.finger_friction
+    return (sliding, *physics.friction[1:])
+
+
+def servo_gains(force: float, physics: GripperPhysics = _DEFAULT_PHYSICS) -> tuple[float, float]:
+    """(kp, kv) of the finger servos for a force limit `force` (N): physics.servo_kp / servo_kv up to the
+    default 25 N; above it kp grows with the force, so that the force still saturates once the finger is
+    25 N / servo_kp (1.25 cm) from its goal, and kv with sqrt(kp), so that it stays critically damped."""
+    scale = max(1.0, force / _DEFAULT_PHYSICS.grip_force)
+    return physics.servo_kp * scale, physics.servo_kv * float(np.sqrt(scale))
+
+
 def _box_inertia(mass: float, size: np.ndarray) -> np.ndarray:
     """Principal moments of a solid box of full extents size[3]."""
     x, y, z = size
@@ -96,10 +129,15 @@ def add_gripper(
     physics: GripperPhysics = GripperPhysics(),
     home: tuple[float, float, float] = (0.0, 0.0, 2.0),
 ) -> None:
-    """Add the mocap target, the welded gripper, its fingers and servos to `spec` at `home` (z up)."""
+    """Add the mocap target, the welded gripper, its fingers and servos to `spec` at `home` (z up).
+
+    Sizes, closing force and pad friction come from `gripper` (`finger_force`, `pad_friction`,
+    `servo_gains`); the rest of the physics from `physics`."""
     palm = np.asarray(gripper.palm_size)
     finger = np.array([gripper.finger_thickness, gripper.finger_width, gripper.finger_length])
     half_open = 0.5 * gripper.max_opening
+    force, pad = finger_force(gripper, physics), pad_friction(gripper, physics)
+    kp, kv = servo_gains(force, physics)
 
     target = spec.worldbody.add_body(name=TARGET_BODY, pos=home, mocap=True)
     del target  # a mocap body needs no geoms; the weld below references it by name
@@ -146,7 +184,7 @@ def add_gripper(
             type=mujoco.mjtGeom.mjGEOM_BOX,
             size=0.5 * finger,
             pos=centre,
-            friction=physics.friction,
+            friction=pad,
             condim=physics.condim,
             solref=physics.pad_solref,
             solimp=[*physics.pad_solimp, 0.5, 2.0],  # (dmin, dmax, width) + MuJoCo's default midpoint, power
@@ -154,10 +192,10 @@ def add_gripper(
             rgba=[0.2, 0.2, 0.25, 1.0],
         )
         servo = spec.add_actuator(name=actuator, target=joint, trntype=mujoco.mjtTrn.mjTRN_JOINT)
-        servo.set_to_position(kp=physics.servo_kp, kv=physics.servo_kv)
+        servo.set_to_position(kp=kp, kv=kv)
         servo.ctrlrange = [-0.01, half_open]
         servo.ctrllimited = mujoco.mjtLimited.mjLIMITED_TRUE
-        servo.forcerange = [-physics.grip_force, physics.grip_force]
+        servo.forcerange = [-force, force]
         servo.forcelimited = mujoco.mjtLimited.mjLIMITED_TRUE
     # The fingers meet at q = 0; they never need to collide with each other.
     spec.add_exclude(bodyname1=FINGER_BODIES[0], bodyname2=FINGER_BODIES[1])

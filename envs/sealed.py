@@ -7,8 +7,8 @@ has seen and none ever will:
   * `SEALED_OBJECT_SET` ("unseen-sealed"): `SEALED_COUNT` procedural objects of every kind
     (`envs.procedural`: superquadrics, blends, extrusions) drawn from a generator seed that no other
     set, test or experiment uses. Never labelled, never trained on; the unseen setting of the report.
-  * `RESERVED_SEEDS`: benchmark seeds for the report only (seeds 0-23, 39, 89, 90, 100 and 200-205
-    were used for development; docs/decisions.md).
+  * `RESERVED_SEEDS`: benchmark seeds for the report only, far from every seed used so far (the seeds
+    decisions were made on: docs/decisions.md).
 
 Only the report path (`eval.table_i`, `sgjax table-i`) runs them: `check_benchmark` refuses a benchmark
 run on a reserved seed or the sealed set unless it is the report, and `check_labelling` refuses to

@@ -1,7 +1,9 @@
 """Parallel-jaw gripper spec and geometry: closing region, enlarged region, collision boxes.
 
 `GripperSpec` is the single source of truth for the gripper's dimensions, shared by Stage 1 (template
-widths, coarse filtering), the E-RNet crops and the simulated gripper.
+widths, coarse filtering), the E-RNet crops and the simulated gripper (which also takes its closing
+force and pad friction from it). `sgjax.geometry.gripper_files` reads and writes a spec as a TOML or
+JSON file and holds the shipped presets (`load_gripper("robotiq-2f85")`).
 
 Frame convention (the gripper frame, paper Fig. 5):
   * z is the approach axis, pointing from the palm towards the object;
@@ -32,6 +34,12 @@ import numpy as np
 
 from sgjax.geometry.rotations import points_from_frame, points_to_frame, rot_z
 
+# Defaults of GripperSpec's physical values, equal to what the simulated gripper has always used
+# (envs.gripper_model.GripperPhysics: grip_force 25 N per finger, pad friction 1.0).
+DEFAULT_CLOSING_FORCE = 25.0
+DEFAULT_FINGER_FRICTION = 1.0
+PHYSICAL_VALUES = {"closing_force": DEFAULT_CLOSING_FORCE, "finger_friction": DEFAULT_FINGER_FRICTION}
+
 
 @dataclasses.dataclass(frozen=True)
 class GripperSpec:
@@ -46,6 +54,19 @@ class GripperSpec:
     refine_angles_deg: refinement rotations about z after deepening (paper: -15, 0, +15).
     contact_threshold: paper "delta", the inner-face-to-surface distance at which the template
         width is read off when closing the gripper (paper: 0.0125 m).
+    closing_force: the force (N) each finger presses on a grasped object, a datasheet's "grip force";
+        the simulated gripper's force limit per finger servo (default 25 N, the value the simulation
+        has always used: `envs.gripper_model.GripperPhysics`).
+    finger_friction: sliding friction coefficient of the finger pads in the simulation (default 1.0,
+        rubber-like; MuJoCo takes the larger of a pair's coefficients).
+
+    closing_force and finger_friction are physical values of the simulated gripper only: nothing in
+    Stage 1, Stage 2 or the crops depends on them. They are init-only (`dataclasses.InitVar`) and kept
+    as attributes, not dataclass fields, so that `dataclasses.asdict` (hence the primitive database's
+    cache key, `DBConfig.key`, and every saved config) is exactly the geometry, as before they existed;
+    `==`, `hash` and `repr` include them where they differ from their defaults (so every key built from
+    `repr` is unchanged for the default values), and `dataclasses.replace` keeps them. To save or
+    rebuild a complete spec use `sgjax.geometry.gripper_files.gripper_to_dict` / `gripper_from_dict`.
     """
 
     max_opening: float = 0.08
@@ -56,8 +77,17 @@ class GripperSpec:
     deepen: float = 0.008
     refine_angles_deg: tuple[float, ...] = (-15.0, 0.0, 15.0)
     contact_threshold: float = 0.0125
+    closing_force: dataclasses.InitVar[float] = DEFAULT_CLOSING_FORCE
+    finger_friction: dataclasses.InitVar[float] = DEFAULT_FINGER_FRICTION
 
-    def __post_init__(self):
+    def __post_init__(self, closing_force: float, finger_friction: float):
+        # Init-only values become plain attributes (not fields: see the class docstring).
+        for name, value in (("closing_force", closing_force), ("finger_friction", finger_friction)):
+            if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+                raise TypeError(f"GripperSpec.{name} must be a number, got {value!r}")
+            if not (np.isfinite(value) and value > 0):
+                raise ValueError(f"GripperSpec.{name} must be positive and finite, got {value}")
+            object.__setattr__(self, name, float(value))
         # Tuples keep the spec hashable even when lists are passed.
         object.__setattr__(self, "palm_size", tuple(float(v) for v in self.palm_size))
         object.__setattr__(self, "refine_angles_deg", tuple(float(v) for v in self.refine_angles_deg))
@@ -85,6 +115,33 @@ class GripperSpec:
     @property
     def num_refinements(self) -> int:
         return len(self.refine_angles_deg)
+
+    def physical_values(self) -> dict[str, float]:
+        """The init-only physical values: {"closing_force": N, "finger_friction": coefficient}."""
+        return {name: getattr(self, name) for name in PHYSICAL_VALUES}
+
+    def _geometry(self) -> tuple:
+        return tuple(getattr(self, f.name) for f in dataclasses.fields(self))
+
+    def _changed_physical_values(self) -> tuple[tuple[str, float], ...]:
+        """(name, value) of the physical values that differ from their defaults, in PHYSICAL_VALUES order."""
+        return tuple((name, getattr(self, name)) for name, default in PHYSICAL_VALUES.items() if getattr(self, name) != default)
+
+    # Written out (dataclasses would compare, hash and print the fields only): with default physical
+    # values each is exactly what the dataclass generated before they existed.
+    def __eq__(self, other):
+        if other.__class__ is not self.__class__:
+            return NotImplemented
+        return self._geometry() == other._geometry() and self.physical_values() == other.physical_values()
+
+    def __hash__(self):
+        changed = self._changed_physical_values()
+        return hash(self._geometry() + changed) if changed else hash(self._geometry())
+
+    def __repr__(self):
+        parts = [f"{f.name}={getattr(self, f.name)!r}" for f in dataclasses.fields(self) if f.repr]
+        parts += [f"{name}={value!r}" for name, value in self._changed_physical_values()]
+        return f"{self.__class__.__qualname__}({', '.join(parts)})"
 
 
 # The Franka Emika Panda hand as boxes, measured on the meshes Contact-GraspNet trains with (cgn-pytorch
@@ -116,7 +173,7 @@ class Box:
     rotation: jax.Array
     half_extents: jax.Array
 
-    def __getitem__(self, index) -> "Box":
+    def __getitem__(self, index) -> Box:
         return jax.tree_util.tree_map(lambda x: x[index], self)
 
 
