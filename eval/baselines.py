@@ -17,7 +17,9 @@ Options (`eval.methods.make_method`): `model` -- the network: a run directory, a
 None for the shipped default (`sgjax/models/pointnetgpd_default` for the PointNetGPD methods,
 `sgjax/models/ernet_default` for gpd+s2; a missing default raises FileNotFoundError naming the path
 and the training command); `small_db` / `db` -- Stage 1's primitive database (s1+pointnetgpd only);
-`config` -- a `BaselineConfig`.
+`config` -- a `BaselineConfig` (its spec is the gripper every method here plans for; the registry's
+`gripper` option gives `BaselineConfig.with_gripper`); a network checkpoint trained for another gripper
+than that is warned about (`sgjax.stage2.checkpoint.warn_gripper`).
 
 Both networks score the scene as the labelling pipeline cropped it: the observation (objects and table)
 cropped to the workspace (the registry's default config, `eval.methods`: `envs.scene.stage2_scene_cloud`,
@@ -49,6 +51,7 @@ from sgjax import policy
 from sgjax.geometry.gripper import GripperSpec
 from sgjax.stage1.filters import lift_to_plane
 from sgjax.stage1.pipeline import Stage1Config
+from sgjax.stage2 import checkpoint
 from sgjax.stage2.scene_cloud import SceneCloudConfig
 
 
@@ -93,6 +96,13 @@ class BaselineConfig:
     @property
     def spec(self) -> GripperSpec:
         return self.stage1.spec
+
+    def with_gripper(self, gripper: GripperSpec) -> BaselineConfig:
+        """These settings for `gripper`: the GPD-style generator's and Stage 1's spec (the two that must agree)."""
+        if self.spec == gripper and self.gpd.spec == gripper:
+            return self
+        return dataclasses.replace(self, gpd=dataclasses.replace(self.gpd, spec=gripper),
+                                   stage1=dataclasses.replace(self.stage1, spec=gripper))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -179,10 +189,12 @@ class Stage1Candidates:
     def __init__(self, config: BaselineConfig, db=None, small_db: bool = False):
         from sgjax.stage1.pipeline import Stage1
 
-        if db is None and small_db:
+        if db is None and (small_db or config.spec != GripperSpec()):
+            # The database of the config's gripper (the default one's ships; another's is built on first use).
             from sgjax.stage1.database import DBConfig, load_database
 
-            db = load_database(DBConfig.small(), progress=False)
+            db_config = DBConfig.small() if small_db else DBConfig()
+            db = load_database(dataclasses.replace(db_config, spec=config.spec), progress=False)
         self.config = config
         self.stage1 = Stage1(db, config.stage1)
 
@@ -276,6 +288,7 @@ class PointNetGPDMethod(_CandidateMethod):
         if generator not in ("gpd", "stage1"):
             raise ValueError(f"generator must be 'gpd' or 'stage1', got {generator!r}")
         network = pointnetgpd.as_model(model)  # first: a missing checkpoint fails before the database loads
+        checkpoint.warn_gripper("PointNetGPD", model, checkpoint.POINTNETGPD_DEFAULT_DIR, config.spec)
         if generator == "gpd":
             self.name, make = "pointnetgpd", functools.partial(gpd_candidates, config=config)
         else:
@@ -307,7 +320,9 @@ class GPDStage2Method(_CandidateMethod):
         from sgjax.stage2 import ernet
 
         config = config or BaselineConfig()
-        super().__init__(ernet.as_model(model), config, functools.partial(gpd_candidates, config=config))
+        network = ernet.as_model(model)
+        checkpoint.warn_gripper("E-RNet", model, checkpoint.ERNET_DEFAULT_DIR, config.spec)
+        super().__init__(network, config, functools.partial(gpd_candidates, config=config))
 
     def _decide(self, cands: CandidateSet, scene, mask, seed: int, points=None, labels=None):
         from sgjax.stage2 import ernet

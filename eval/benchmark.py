@@ -5,6 +5,10 @@ have no log yet (`eval.declutter.run_scene`), writes each scene's log and pictur
 recomputes OUT's tables (`eval.report`). Rerunning the same command continues an interrupted run; a log
 left by a different configuration (other objects, camera, trial settings, method options) is an error,
 so one OUT never mixes incomparable scenes under one label.
+
+The method plans for the simulated gripper (`DeclutterConfig.gripper`, recorded whole in every scene log
+as "gripper"): a registered method is built for it (`eval.methods.takes_gripper`), and a method instance or
+a `gripper` method option planning for another gripper is refused.
 """
 
 from __future__ import annotations
@@ -21,8 +25,9 @@ from pathlib import Path
 from envs import sealed
 from eval import declutter, metrics, report
 from eval.declutter import DeclutterConfig
-from eval.methods import check_method, make_method
+from eval.methods import check_method, make_method, method_gripper, takes_gripper
 from eval.protocol import Method
+from sgjax.geometry.gripper_files import gripper_to_dict
 
 
 @dataclasses.dataclass
@@ -181,11 +186,26 @@ def run_benchmark(
     if n < 1:
         raise ValueError(f"n_objects must be >= 1, got {n}")
     options = dict(method_options or {})
+    # The method plans for the simulated gripper: never another one (`eval.methods.takes_gripper`).
+    given = options.pop("gripper", None)
+    if given is not None and given != config.gripper:
+        from sgjax.stage2.checkpoint import describe_gripper
+
+        raise ValueError(f"method_options gripper {describe_gripper(given, config.gripper)} is not the benchmark's "
+                         f"simulated gripper {describe_gripper(config.gripper, given)} (DeclutterConfig.gripper): "
+                         "set the gripper there")
     if isinstance(method, str):
         check_method(method, **options)  # unknown, unavailable or a wrong option: fail before any work
         instance, name = None, method
     else:
         instance, name = method, method.name
+        planned = method_gripper(instance)
+        if planned is not None and planned != config.gripper:
+            from sgjax.stage2.checkpoint import describe_gripper
+
+            raise ValueError(f"method {name!r} plans for gripper {describe_gripper(planned, config.gripper)} but the "
+                             f"benchmark simulates gripper {describe_gripper(config.gripper, planned)} "
+                             "(DeclutterConfig.gripper): build the method for that gripper")
     if object_assets is not None:
         from envs.objects import object_set_identity
 
@@ -194,8 +214,10 @@ def run_benchmark(
     else:
         assets, label, identity = resolve_objects(chosen, objects, progress)
     setting_label = f"{label}-{n}" + (f"@{config.view}" if config.view else "")
-    # Built before the logs are read: its settings are part of the resume key.
-    instance = instance or make_method(name, **options)
+    # Built before the logs are read: its settings are part of the resume key. The gripper is not among
+    # the key's options: the config's part of the key holds it (DeclutterConfig.gripper).
+    if instance is None:
+        instance = make_method(name, **options, **({"gripper": config.gripper} if takes_gripper(name) else {}))
     key = run_key(name, options, n, assets, config, getattr(instance, "config", None))
     out = Path(out)
 
@@ -218,6 +240,7 @@ def run_benchmark(
         run = declutter.run_scene(instance, assets, n, seed, index, config, setting_label)
         run.log["key"] = key
         run.log["object_set"] = identity  # which objects, how many, and any skipped: shown in the tables
+        run.log["gripper"] = gripper_to_dict(config.gripper)  # the simulated gripper, the method's too
         if index < pictures:  # before the log: a scene with a log is finished, picture included
             path = report.picture_path(out, name, setting_label, seed, index)
             report.draw_scene(path, run.first_observation, run.log, config.gripper, config.scene.workspace_size)

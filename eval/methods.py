@@ -7,6 +7,10 @@ the method does not take). The paper's baselines and ablations: `pointnetgpd`, `
 `gpd+s2` (eval/baselines.py) and `contact-graspnet` (eval/contact_graspnet.py, out of process in its
 own Python environment: unavailable until SGJAX_CGN_PYTHON names one).
 
+Every method that plans with a gripper of its own takes the option `gripper` (a `GripperSpec`; None:
+the default one), which the benchmark sets to its simulated gripper so that the two never differ
+(`takes_gripper`; a `config` given with it that plans for another gripper is refused).
+
 The registry sits above the methods: it imports each method module (lazily, in its factory), and the
 methods import only the protocol they implement (`eval.protocol`: `Method`, `Decision`, errors).
 """
@@ -19,7 +23,8 @@ from collections.abc import Callable
 
 from eval.protocol import Method, MethodUnavailable, split_preset
 
-__all__ = ["METHODS", "MethodInfo", "MethodUnavailable", "UnknownMethod", "check_method", "make_method", "method_names"]
+__all__ = ["METHODS", "MethodInfo", "MethodUnavailable", "UnknownMethod", "check_method", "make_method", "method_gripper",
+           "method_names", "takes_gripper", "uses_database"]
 
 
 class UnknownMethod(ValueError):
@@ -57,10 +62,26 @@ def _planner_missing() -> str | None:
     return None
 
 
-def _gpd(config=None) -> Method:
-    from eval.gpd import GPDMethod
+def _for_gripper(name: str, config, gripper, default: Callable):
+    """The method's config for `gripper`: `default(gripper)` when no config is given (gripper None: the
+    default gripper's); a given config must plan for that gripper (its `spec`), else ValueError: the
+    benchmark's simulated gripper and the method's are the same one (`eval.benchmark.run_benchmark`)."""
+    if config is None:
+        return default(gripper)
+    if gripper is not None and config.spec != gripper:
+        from sgjax.stage2.checkpoint import describe_gripper
 
-    return GPDMethod(config)
+        raise ValueError(f"method {name!r}: its config plans for gripper {describe_gripper(config.spec, gripper)} but the "
+                         f"benchmark simulates gripper {describe_gripper(gripper, config.spec)} (DeclutterConfig.gripper): "
+                         "give a config with that spec, or none")
+    return config
+
+
+def _gpd(config=None, gripper=None) -> Method:
+    from eval.gpd import GPDMethod
+    from sgjax.samplers.gpd import GPDConfig
+
+    return GPDMethod(_for_gripper("gpd", config, gripper, lambda g: None if g is None else GPDConfig(spec=g)))
 
 
 def _oracle(**options) -> Method:
@@ -70,59 +91,77 @@ def _oracle(**options) -> Method:
 
 
 def _supergrasp(use_refinement: bool) -> Callable[..., Method]:
-    def factory(model=None, small_db: bool = False, db=None, config=None, preset: str = "default") -> Method:
+    def factory(model=None, small_db: bool = False, db=None, config=None, preset: str = "default",
+                gripper=None) -> Method:
         from eval.supergrasp import PlannerMethod
 
         name = "supergrasp" if use_refinement else "supergrasp-norefine"
-        return PlannerMethod(name, use_refinement, model=model, small_db=small_db, db=db, config=config, preset=preset)
+        _for_gripper(name, config, gripper, lambda g: None)  # a given config plans for `gripper`
+        return PlannerMethod(name, use_refinement, model=model, small_db=small_db, db=db, config=config, preset=preset,
+                             gripper=gripper)
 
     return factory
 
 
-_PLANNER_OPTIONS = ("model", "small_db", "db", "config")
+_PLANNER_OPTIONS = ("model", "small_db", "db", "config", "gripper")
 
 
-def _supergrasp_pointnetgpd(model=None, small_db: bool = False, db=None, config=None) -> Method:
+def _supergrasp_pointnetgpd(model=None, small_db: bool = False, db=None, config=None, gripper=None) -> Method:
     from eval.supergrasp import PlannerMethod
-    from sgjax.stage2 import pointnetgpd
+    from sgjax.stage2 import checkpoint, pointnetgpd
 
-    return PlannerMethod("supergrasp-pointnetgpd", False, model=pointnetgpd.as_model(model), small_db=small_db, db=db,
-                         config=config)
+    _for_gripper("supergrasp-pointnetgpd", config, gripper, lambda g: None)
+    method = PlannerMethod("supergrasp-pointnetgpd", False, model=pointnetgpd.as_model(model), small_db=small_db, db=db,
+                           config=config, gripper=gripper)
+    checkpoint.warn_gripper("PointNetGPD", model, checkpoint.POINTNETGPD_DEFAULT_DIR, method.config.spec)
+    return method
 
 
-def _baseline_config():
+def _baseline_config(gripper=None):
     """The baselines' settings with the workspace-cropped Stage-2 scene cloud that labelling, training and
-    SuperGrasp use: the networks score the point density they were trained on."""
+    SuperGrasp use (the networks score the point density they were trained on), for `gripper` (None:
+    the default one): the GPD-style generator's and Stage 1's spec."""
     from envs.scene import stage2_scene_cloud
     from eval.baselines import BaselineConfig
 
-    return BaselineConfig(scene_cloud=stage2_scene_cloud())
+    config = BaselineConfig(scene_cloud=stage2_scene_cloud())
+    return config if gripper is None else config.with_gripper(gripper)
 
 
 def _pointnetgpd(generator: str) -> Callable[..., Method]:
-    def factory(model=None, small_db: bool = False, db=None, config=None) -> Method:
+    def factory(model=None, small_db: bool = False, db=None, config=None, gripper=None) -> Method:
         from eval.baselines import PointNetGPDMethod
 
-        return PointNetGPDMethod(generator, model=model, small_db=small_db, db=db, config=config or _baseline_config())
+        name = "pointnetgpd" if generator == "gpd" else "s1+pointnetgpd"
+        config = _for_gripper(name, config, gripper, _baseline_config)
+        return PointNetGPDMethod(generator, model=model, small_db=small_db, db=db, config=config)
 
     return factory
 
 
-def _gpd_s2(model=None, config=None) -> Method:
+def _gpd_s2(model=None, config=None, gripper=None) -> Method:
     from eval.baselines import GPDStage2Method
 
-    return GPDStage2Method(model=model, config=config or _baseline_config())
+    return GPDStage2Method(model=model, config=_for_gripper("gpd+s2", config, gripper, _baseline_config))
 
 
-def _contact_graspnet(config=None) -> Method:
-    from eval.contact_graspnet import CGNConfig, ContactGraspNetMethod
+def _cgn_config(gripper=None):
+    """Contact-GraspNet's settings: the workspace crop on a 3 mm grid, as SuperGrasp's cloud (measured
+    best, docs/benchmark.md); its grasps are placed for `gripper` (None: the default one)."""
+    import dataclasses
 
-    if config is None:  # the workspace crop on a 3 mm grid, as SuperGrasp's cloud: measured best (docs/benchmark.md)
-        from envs.scene import stage2_scene_cloud
+    from envs.scene import stage2_scene_cloud
+    from eval.contact_graspnet import CGNConfig
 
-        cloud = stage2_scene_cloud()
-        config = CGNConfig(voxel=cloud.voxel, scene_bounds=cloud.bounds)
-    return ContactGraspNetMethod(config)
+    cloud = stage2_scene_cloud()
+    config = CGNConfig(voxel=cloud.voxel, scene_bounds=cloud.bounds)
+    return config if gripper is None else dataclasses.replace(config, spec=gripper)
+
+
+def _contact_graspnet(config=None, gripper=None) -> Method:
+    from eval.contact_graspnet import ContactGraspNetMethod
+
+    return ContactGraspNetMethod(_for_gripper("contact-graspnet", config, gripper, _cgn_config))
 
 
 def _cgn_missing() -> str | None:
@@ -156,7 +195,8 @@ METHODS: dict[str, MethodInfo] = {
             _PLANNER_OPTIONS,
             _planner_missing,
         ),
-        MethodInfo("gpd", "GPD-style geometric baseline: antipodal sampling, ranked by an antipodal score", _gpd, ("config",)),
+        MethodInfo("gpd", "GPD-style geometric baseline: antipodal sampling, ranked by an antipodal score", _gpd,
+                   ("config", "gripper")),
         MethodInfo(
             "oracle-topdown",
             "diagnostic: top-down grasps from the simulator's ground-truth object poses",
@@ -168,30 +208,54 @@ METHODS: dict[str, MethodInfo] = {
             "pointnetgpd",
             "PointNetGPD (paper baseline): GPD-style candidates scored by a PointNet over the closing region",
             _pointnetgpd("gpd"),
-            ("model", "config"),
+            ("model", "config", "gripper"),
         ),
         MethodInfo(
             "s1+pointnetgpd",
             "Ours (S1) + PointNetGPD (paper ablation): Stage-1 candidates scored by PointNetGPD",
             _pointnetgpd("stage1"),
-            ("model", "small_db", "db", "config"),
+            ("model", "small_db", "db", "config", "gripper"),
         ),
         MethodInfo(
             "gpd+s2",
             "GPD-style candidates + Ours (S2) (paper ablation: PointNetGPD + Ours (S2)): E-RNet and the decision policy",
             _gpd_s2,
-            ("model", "config"),
+            ("model", "config", "gripper"),
             _planner_missing,
         ),
         MethodInfo(
             "contact-graspnet",
             "Contact-GraspNet (paper baseline), run out of process in its own environment ($SGJAX_CGN_PYTHON)",
             _contact_graspnet,
-            ("config",),
+            ("config", "gripper"),
             _cgn_missing,
         ),
     )
 }
+
+
+def takes_gripper(name: str) -> bool:
+    """Whether method `name` ("method" or "method@preset") plans with a gripper of its own: it takes the
+    `gripper` option, which `eval.benchmark.run_benchmark` sets to the simulated gripper
+    (`DeclutterConfig.gripper`). The others (oracle-topdown) read the scene's gripper."""
+    info = METHODS.get(split_preset(name)[0])
+    return info is not None and "gripper" in info.options
+
+
+def uses_database(name: str) -> bool:
+    """Whether method `name` runs Stage 1 on a primitive database (it takes `small_db`), whose gripper is
+    the method's: a gripper other than the default one builds its own on first use."""
+    info = METHODS.get(split_preset(name)[0])
+    return info is not None and "small_db" in info.options
+
+
+def method_gripper(method: Method):
+    """The gripper a built method plans with (its config's `spec`), None when it has none of its own
+    (e.g. oracle-topdown, which reads the scene's)."""
+    from sgjax.geometry.gripper import GripperSpec
+
+    spec = getattr(getattr(method, "config", None), "spec", None)
+    return spec if isinstance(spec, GripperSpec) else None
 
 
 def method_names(available_only: bool = False) -> list[str]:

@@ -4,9 +4,10 @@ The planner is imported lazily, so the rest of the benchmark works without it. O
 `model` (an ERNet, a `sgjax train` run directory, or None for the planner's default checkpoint),
 `small_db` (the small primitive database, for tests and smoke runs), `db` (a PrimitiveDB), `preset`
 (a named configuration, `sgjax.presets`; the method's name becomes e.g. `supergrasp@paper` unless it is
-"default") or `config` (a PlannerConfig instead). `use_refinement` is set by the method's name; a preset's
-Stage-2 scene cloud is cropped to the workspace and voxelised exactly as the labelling pipeline did for
-training.
+"default") or `config` (a PlannerConfig instead), `gripper` (the GripperSpec the preset plans for, on
+that gripper's primitive database; the benchmark passes its simulated gripper). `use_refinement` is set
+by the method's name; a preset's Stage-2 scene cloud is cropped to the workspace and voxelised exactly as
+the labelling pipeline did for training.
 
 The table: unless the config sets `support_plane`, each plan gives the planner the plane z = median z
 of the observation's table points (labels < 0), as the GPD baseline does, so Stage 1 drops grasps that
@@ -30,20 +31,29 @@ class PlannerMethod:
     """A `Method` over `sgjax.planner.Planner` (with or without the refinement branch)."""
 
     def __init__(self, name: str, use_refinement: bool, model=None, small_db: bool = False, db=None, config=None,
-                 preset: str = "default"):
+                 preset: str = "default", gripper=None):
         from sgjax import presets
+        from sgjax.geometry.gripper import GripperSpec
         from sgjax.planner import Planner
 
-        if db is None and small_db:
-            from sgjax.stage1.database import DBConfig, load_database
-
-            db = load_database(DBConfig.small(), progress=False)
         if config is None:  # the Stage-2 scene cloud exactly as in labelling (train/label.py)
             from envs.scene import stage2_scene_cloud
 
-            config = presets.get(preset, scene_cloud=stage2_scene_cloud())
+            config = presets.get(preset, gripper=gripper, scene_cloud=stage2_scene_cloud())
         elif preset != "default":
             raise ValueError("give a planner preset or a config, not both")
+        elif gripper is not None and config.spec != gripper:
+            from sgjax.stage2.checkpoint import describe_gripper
+
+            raise ValueError(f"{name}: the config plans for gripper {describe_gripper(config.spec, gripper)}, not for "
+                             f"`gripper` {describe_gripper(gripper, config.spec)}")
+        if db is None and (small_db or config.spec != GripperSpec()):
+            # The database of the planner's gripper (the default one's ships; another's is built into the
+            # cache on first use).
+            from sgjax.stage1.database import DBConfig, load_database
+
+            db_config = DBConfig.small() if small_db else DBConfig()
+            db = load_database(dataclasses.replace(db_config, spec=config.spec), progress=False)
         self.config = dataclasses.replace(config, use_refinement=use_refinement)
         self.name = with_preset(name, preset)
         self.planner = Planner(model=model, db=db, config=self.config)

@@ -43,15 +43,17 @@ def run_table_i(
     progress: bool = True,
     say: Callable[[str], None] = print,
 ) -> tuple[list[BenchmarkResult], list[str]]:
-    """Run (or continue) the report into `out` -> (results, methods skipped with the reason)."""
-    results, skipped = [], []
-    for method in methods:
+    """Run (or continue) the report into `out` -> (results, methods skipped with the reason).
+    An unknown method raises `eval.methods.UnknownMethod` before any run."""
+    results, skipped, runnable = [], [], []
+    for method in methods:  # every name checked first: a typo fails now, not after hours of runs
         try:
             check_method(method)
+            runnable.append(method)
         except MethodUnavailable as exc:
             skipped.append(f"{method}: {exc}")
             say(f"skipped {method}: {exc}")
-            continue
+    for method in runnable:
         for setting, objects in SETTINGS:
             result = run_benchmark(method, setting=setting, scenes=scenes, seed=SEED, out=out, objects=objects,
                                    progress=progress, for_report=True)

@@ -39,6 +39,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import time
+import warnings
 from typing import Any, ClassVar
 
 import jax
@@ -56,7 +57,7 @@ from sgjax.stage1.fit_grasps import FitGraspConfig
 from sgjax.stage1.memory import Stage1Memory
 from sgjax.stage1.neighbours import NeighbourFitConfig
 from sgjax.stage1.pipeline import Candidates, Stage1, Stage1Config
-from sgjax.stage2 import ernet, pointnetgpd, scorers
+from sgjax.stage2 import checkpoint, ernet, pointnetgpd, scorers
 from sgjax.stage2.scene_cloud import SceneCloudConfig
 from sgjax.utils import exported
 from sgjax.utils.cache import enable_compilation_cache
@@ -381,6 +382,11 @@ class Planner:
         a PointNetGPD instead: the network ablation (`sgjax.stage2.scorers`; needs use_refinement=False);
     db: a PrimitiveDB, or None (the default database from the cache, built on first use);
     config: a `PlannerConfig` (named ones: `sgjax.presets`).
+
+    `checkpoint` names the network's checkpoint ("sgjax/models/ernet_default", the run directory, or "an
+    in-memory model") and `checkpoint_gripper` the gripper it was trained for (its meta's record; None for
+    a model in memory). When that differs from the gripper the planner plans for (`config.spec`), the
+    planner warns once, when it is built (`checkpoint.gripper_mismatch`).
     """
 
     def __init__(self, model=None, db: PrimitiveDB | None = None, config: PlannerConfig = PlannerConfig()):
@@ -388,6 +394,12 @@ class Planner:
         # PointNetGPD in E-RNet's place is the network ablation (`scorers`): it has no refinement head.
         self.model = model if isinstance(model, pointnetgpd.PointNetGPD) else ernet.as_model(model)
         self.config = config
+        self.checkpoint = checkpoint.checkpoint_name(model, checkpoint.ERNET_DEFAULT_DIR)
+        self.checkpoint_gripper = checkpoint.model_gripper(model, checkpoint.ERNET_DEFAULT_DIR)
+        network = "E-RNet" if isinstance(self.model, ernet.ERNet) else type(self.model).__name__
+        mismatch = checkpoint.gripper_mismatch(network, self.checkpoint, self.checkpoint_gripper, config.spec)
+        if mismatch is not None:
+            warnings.warn(mismatch, stacklevel=2)
         self._scorer = scorers.scorer_for(self.model)
         if not scorers.has_refinement(self.model):
             if config.use_refinement:

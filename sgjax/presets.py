@@ -8,6 +8,8 @@ Playground's configs).
 `sgjax declutter --method supergrasp --preset NAME` runs one on the benchmark (which adds its workspace
 crop to the Stage-2 scene cloud); `--method supergrasp-norefine` is the same preset without the
 refinement branch (the paper's "w/o RNet" ablation). Each README row names the preset that made it.
+`get(name, gripper=spec)` (or `with_gripper(config, spec)`) is the preset for another gripper
+(`sgjax.geometry.gripper_files.load_gripper`; `--gripper` on the command line).
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import dataclasses
 from typing import TYPE_CHECKING, Callable
 
 if TYPE_CHECKING:
+    from sgjax.geometry.gripper import GripperSpec
     from sgjax.planner import PlannerConfig
 
 # The planner (and JAX with it) is imported when a preset is built, not when its name is looked up:
@@ -58,9 +61,20 @@ def names() -> tuple[str, ...]:
     return tuple(PRESETS)
 
 
-def get(name: str, **changes) -> PlannerConfig:
+def get(name: str, gripper: GripperSpec | None = None, **changes) -> PlannerConfig:
     """The `PlannerConfig` of preset `name`, with any top-level fields replaced by `changes` (e.g.
-    `use_refinement=False`). Unknown names raise ValueError listing the known ones."""
+    `use_refinement=False`) and planning for `gripper` (None: the preset's, the default gripper; see
+    `with_gripper`). Unknown names raise ValueError listing the known ones."""
     if name not in PRESETS:
         raise ValueError(f"unknown planner preset {name!r}; known: {', '.join(PRESETS)}")
-    return dataclasses.replace(PRESETS[name](), **changes)
+    config = dataclasses.replace(PRESETS[name](), **changes)
+    return config if gripper is None else with_gripper(config, gripper)
+
+
+def with_gripper(config: PlannerConfig, gripper: GripperSpec) -> PlannerConfig:
+    """`config` planning for `gripper`: the planner's gripper is its Stage-1 config's spec
+    (`PlannerConfig.spec`, also Stage 2's crops and the refinements); nothing else holds one. The same
+    config when `gripper` is already its spec."""
+    if config.spec == gripper:
+        return config
+    return dataclasses.replace(config, stage1=dataclasses.replace(config.stage1, spec=gripper))

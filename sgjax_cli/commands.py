@@ -12,6 +12,7 @@ import os
 import sys
 from collections.abc import Sequence
 
+from sgjax.geometry.gripper_files import preset_names as gripper_presets
 from sgjax.presets import names as preset_names
 from sgjax.utils.files import atomic_write
 
@@ -31,6 +32,117 @@ EXAMPLE_SHAPES = {
 def _fail(message: str, code: int = 2) -> int:
     print(f"sgjax: error: {message}", file=sys.stderr)
     return code
+
+
+# ---------------------------------------------------------------------------------------------
+# --gripper NAME|FILE: the gripper a command plans, labels, trains or benchmarks with.
+
+GRIPPER_HELP = (f"the gripper: a preset ({', '.join(gripper_presets())}) or a .toml / .json gripper file "
+                "(sgjax.geometry.gripper_files; default: the default gripper)")
+
+
+def _add_gripper(p: argparse.ArgumentParser, help_text: str = GRIPPER_HELP) -> None:
+    p.add_argument("--gripper", default=None, metavar="NAME|FILE", help=help_text)
+
+
+def _gripper(args: argparse.Namespace):
+    """The GripperSpec of --gripper (GripperSpec() when not given). Raises ValueError (the file's
+    GripperFileError: one line naming the field, or listing the presets) prefixed with the option."""
+    from sgjax.geometry.gripper import GripperSpec
+    from sgjax.geometry.gripper_files import GripperFileError, load_gripper
+
+    if args.gripper is None:
+        return GripperSpec()
+    try:
+        return load_gripper(args.gripper)
+    except GripperFileError as exc:
+        raise ValueError(f"--gripper: {exc}") from None
+
+
+def _db_config(spec, small: bool = False):
+    """The primitive database's config for gripper `spec` (the small grid with --small-db)."""
+    import dataclasses
+
+    from sgjax.stage1.database import DBConfig
+
+    return dataclasses.replace(DBConfig.small() if small else DBConfig(), spec=spec)
+
+
+def _database_ready(cfg) -> bool:
+    from sgjax.stage1.database import default_path, shipped_path
+
+    return default_path(cfg).is_file() or shipped_path(cfg).is_file()
+
+
+def _note_database(cfg, small: bool = False) -> None:
+    """A one-line note when the database of `cfg`, for a gripper other than the default one, is not
+    built yet (only the default gripper's ships): the next load builds it into the cache, once."""
+    import dataclasses
+
+    from sgjax.geometry.gripper import GripperSpec
+    from sgjax.stage1.database import default_path
+
+    # The database holds the geometry only (DBConfig.key): a default-sized gripper with another force uses the default one.
+    if dataclasses.asdict(cfg.spec) != dataclasses.asdict(GripperSpec()) and not _database_ready(cfg):
+        took = "seconds" if small else "~3 min on 2 cores"
+        print(f"sgjax: note: no primitive database for this gripper yet: building it into {default_path(cfg)} "
+              f"(once, {took})", file=sys.stderr)
+
+
+def _prepare_database(spec, small: bool = False) -> None:
+    """Build the database of gripper `spec` into the cache if it is not there (with the note), so that
+    what loads it later (a benchmark method, labelling) finds it."""
+    from sgjax.stage1.database import build_database, default_path, save_database
+
+    cfg = _db_config(spec, small)
+    if not _database_ready(cfg):
+        _note_database(cfg, small)
+        save_database(build_database(cfg, progress=False), default_path(cfg))
+
+
+def _database(spec, small: bool = False, path: str | None = None, check: bool = False):
+    """The primitive database for gripper `spec`: the file `path` (--db; with `check`, the --gripper
+    given, ValueError when it was built for another gripper), else the cached / shipped one, built
+    first when missing (with the note)."""
+    import dataclasses
+
+    from sgjax.stage1.database import load_database, load_database_file
+
+    if path:
+        db = load_database_file(path)
+        built_for = json.loads(db.config_json).get("spec")
+        if check and built_for is not None and built_for != json.loads(json.dumps(dataclasses.asdict(spec))):
+            raise ValueError(f"--db {path} was built for another gripper ({built_for}) than --gripper's: "
+                             "build one with `sgjax build-db --gripper ...` or leave --db out")
+        return db
+    cfg = _db_config(spec, small)
+    _note_database(cfg, small)
+    return load_database(cfg)
+
+
+class _warnings_as_notes:
+    """Within it, the warning about a network checkpoint trained for another gripper than the one planned
+    for (`sgjax.stage2.checkpoint.gripper_mismatch`) prints as one line, "sgjax: warning: ...", on
+    stderr; other warnings print as Python prints them."""
+
+    def __enter__(self):
+        import warnings
+
+        self._catch = warnings.catch_warnings()
+        self._catch.__enter__()
+        shown = warnings.showwarning
+
+        def show(message, *rest, **options):
+            if "was trained for gripper" in str(message):
+                print(f"sgjax: warning: {message}", file=sys.stderr)
+            else:
+                shown(message, *rest, **options)
+
+        warnings.showwarning = show
+        return self
+
+    def __exit__(self, *exc):
+        return self._catch.__exit__(*exc)
 
 
 def _cmd_example(args: argparse.Namespace) -> int:
@@ -197,6 +309,10 @@ def _train_options(args: argparse.Namespace) -> int:
     hand = {"hand_points": args.hand_points} if args.hand_points else {}
     if hand and args.network != "ernet":
         return _fail("--hand-points is an E-RNet input; the PointNetGPD baseline sees its closing region only")
+    try:
+        given = _gripper(args) if args.gripper is not None else None
+    except ValueError as exc:
+        return _fail(str(exc))
     if args.synthetic:
         if len(args.data) > 1:
             return _fail("--synthetic writes to one --data directory")
@@ -207,6 +323,11 @@ def _train_options(args: argparse.Namespace) -> int:
         samples = dataset.synthetic_samples(args.synthetic, args.seed)
         print(f"wrote {args.synthetic} synthetic samples to {dataset.write_shard(os.path.join(data, 'synthetic_000'), samples)}")
     try:  # a bad combination (e.g. --batch-size not divisible by --devices) is a usage error, not a traceback
+        spec = _training_gripper(args.data, given, args.gripper)
+        if args.network == "ernet" and spec.num_refinements != network().n_refinements:
+            hand["n_refinements"] = spec.num_refinements  # one refine output per refinement of the gripper
+        if args.init is not None:
+            _note_init_gripper(args.init, args.network, spec)
         config = trainer.TrainConfig(
             epochs=args.epochs,
             batch_size=args.batch_size,
@@ -218,6 +339,7 @@ def _train_options(args: argparse.Namespace) -> int:
             lr_decay_epochs=args.lr_decay_epochs,
             devices=args.devices,
             model={"paper": network.paper, "light": network.light, "tiny": network.tiny}[args.model](**hand),
+            spec=spec,
         )
         result = run(args.data, args.out, config, progress=not args.quiet, init=args.init)  # one directory or several
     except (dataset.DatasetError, ValueError) as exc:
@@ -229,6 +351,33 @@ def _train_options(args: argparse.Namespace) -> int:
     return 0
 
 
+def _training_gripper(data, given, option: str | None):
+    """The gripper a training run is for: its labelled directories' (`train.label.data_gripper`: one
+    gripper, the whole spec). ValueError when --gripper was `given` and is another gripper than the data's."""
+    from sgjax.stage2.checkpoint import describe_gripper
+    from train.label import data_gripper
+
+    spec = data_gripper(data)
+    if given is not None and given != spec:
+        raise ValueError(f"--gripper {option} is not the gripper the labels in {', '.join(data)} were made for: "
+                         f"they are for {describe_gripper(spec, given)}, --gripper is {describe_gripper(given, spec)} "
+                         f"(label for your gripper with `sgjax label --gripper {option}`)")
+    return spec
+
+
+def _note_init_gripper(init: str, network: str, spec) -> None:
+    """A one-line note when --init's checkpoint was trained for another gripper than this run's data."""
+    from sgjax.stage2.checkpoint import checkpoint_gripper, describe_gripper
+
+    try:
+        trained = checkpoint_gripper(init)
+    except (FileNotFoundError, ValueError):  # the trainer says what is wrong with the directory
+        return
+    if trained != spec:
+        print(f"sgjax: note: --init {init} was trained for gripper {describe_gripper(trained, spec)}; this run trains "
+              f"it on labels of gripper {describe_gripper(spec, trained)}", file=sys.stderr)
+
+
 def _train_recipe(args: argparse.Namespace) -> int:
     """`sgjax train --recipe NAME|FILE [--out RUN] [--tiny]` and `sgjax train --list-recipes`."""
     from train import dataset
@@ -236,10 +385,12 @@ def _train_recipe(args: argparse.Namespace) -> int:
 
     given = [flag for name, flag in TRAIN_OPTIONS if getattr(args, name) is not None]
     if args.list_recipes:
-        given += [flag for flag, value in (("--out", args.out), ("--tiny", args.tiny)) if value]
+        given += [flag for flag, value in (("--out", args.out), ("--tiny", args.tiny), ("--gripper", args.gripper)) if value]
         if given:
             return _fail(f"--list-recipes takes no other option, got {', '.join(given)}")
         return _list_recipes()
+    if args.gripper is not None:
+        given.append("--gripper")  # a recipe's label sets are the default gripper's
     if given:
         return _fail(f"--recipe sets the data and every training setting: drop {', '.join(given)} (or train from a "
                      "copy of the recipe file with them changed)")
@@ -309,13 +460,14 @@ def _scene_range(scenes: str, first_scene: int | None) -> tuple[int, int]:
 
 
 def _cmd_label(args: argparse.Namespace) -> int:
-    from sgjax.stage1.database import DBConfig, load_database
+    from sgjax.geometry.gripper import GripperSpec
     from sgjax.stage1.pipeline import Stage1
     from train import label
     from train.label_ray import WorkerFailures  # imports no ray: that waits for --ray
     from train.label import label_config
 
     try:
+        spec = _gripper(args)
         first_scene, n_scenes = _scene_range(args.scenes, args.first_scene)
         shard = None if args.shard is None else label.parse_shard(args.shard)
         if args.ray is not None and shard is not None:
@@ -327,20 +479,23 @@ def _cmd_label(args: argparse.Namespace) -> int:
         config = label_config(  # shared with `sgjax train --recipe`, whose label sets resume directories made here
             objects=args.objects, seed=args.seed, camera=args.camera, n_objects=args.n_objects,
             targets_per_scene=args.targets_per_scene, per_source=args.per_source, held_out_objects=args.held_out_objects,
-            note=lambda text: print(text, file=sys.stderr),
+            note=lambda text: print(text, file=sys.stderr), gripper=spec,
         )
+        if spec != GripperSpec():  # no shipped database for it: built into the cache first (with a note),
+            label.check_out_dir(args.out, config)  # once the directory is known to take this config
+            _prepare_database(spec, args.small_db)
         if args.ray is not None:
             from train.label_ray import label_ray
 
             run = label_ray(
-                args.out, n_scenes, config, db=DBConfig.small() if args.small_db else DBConfig(), address=args.ray or None,
+                args.out, n_scenes, config, db=_db_config(spec, args.small_db), address=args.ray or None,
                 workers=args.workers, threads=args.threads or 1, backend=args.backend, first_scene=first_scene,
                 progress=not args.quiet,
             )
             summary = run.summary
             print(run.lines()[0])
         else:
-            stage1 = Stage1(load_database(DBConfig.small()), config.stage1) if args.small_db else None
+            stage1 = Stage1(_database(spec, small=True), config.stage1) if args.small_db else None
             summary = label.label(
                 args.out, n_scenes, config, stage1=stage1, backend=args.backend, nthread=args.threads, progress=not args.quiet,
                 first_scene=first_scene, shard=shard,
@@ -368,7 +523,13 @@ def _cmd_build_db(args: argparse.Namespace) -> int:
         ship_database,
     )
 
-    cfg = DBConfig.small() if args.small else DBConfig()
+    try:
+        spec = _gripper(args)
+    except ValueError as exc:
+        return _fail(str(exc))
+    if args.ship and args.gripper is not None and spec != DBConfig().spec:
+        return _fail("--ship: only the default gripper's database ships (others are built into the cache on first use)")
+    cfg = _db_config(spec, args.small)
     path = args.out or default_path(cfg)
     if os.path.isfile(path) and not args.force:
         db = load_database_file(path)
@@ -389,15 +550,15 @@ def _cmd_candidates(args: argparse.Namespace) -> int:
     import numpy as np
 
     from sgjax.geometry.pointcloud import CloudError, load_cloud
-    from sgjax.stage1.database import DBConfig, load_database, load_database_file
-    from sgjax.stage1.pipeline import Stage1
+    from sgjax.stage1.pipeline import Stage1, Stage1Config
 
     try:
+        spec = _gripper(args)
         cloud = load_cloud(args.cloud)
         scene = load_cloud(args.scene) if args.scene else None
-        db = load_database_file(args.db) if args.db else load_database(DBConfig.small() if args.small_db else DBConfig())
+        db = _database(spec, args.small_db, args.db, check=args.gripper is not None)
         viewpoint = None if args.viewpoint is None else np.asarray(args.viewpoint, float)
-        cands = Stage1(db)(cloud, scene, viewpoint=viewpoint, seed=args.seed)
+        cands = Stage1(db, Stage1Config(spec=spec))(cloud, scene, viewpoint=viewpoint, seed=args.seed)
     except (CloudError, ValueError, FileNotFoundError) as exc:
         return _fail(str(exc))
     if args.json:
@@ -462,9 +623,9 @@ def _plan_cloud(args: argparse.Namespace) -> int:
     import numpy as np
 
     from sgjax.geometry.pointcloud import CloudError, load_cloud
-    from sgjax.stage1.database import DBConfig, load_database, load_database_file
 
     try:
+        spec = _gripper(args)
         cloud = load_cloud(args.cloud)
         if not os.path.isfile(args.mask):
             raise CloudError(f"{args.mask}: no such file")
@@ -480,8 +641,9 @@ def _plan_cloud(args: argparse.Namespace) -> int:
         from sgjax import presets
         from sgjax.planner import Planner
 
-        db = load_database_file(args.db) if args.db else load_database(DBConfig.small() if args.small_db else DBConfig())
-        planner = Planner(model=args.model, db=db, config=presets.get(args.preset))
+        db = _database(spec, args.small_db, args.db, check=args.gripper is not None)
+        with _warnings_as_notes():  # the checkpoint trained for another gripper: one line
+            planner = Planner(model=args.model, db=db, config=presets.get(args.preset, gripper=spec))
         viewpoint = (0.0, 0.0, 0.0) if args.viewpoint is None else tuple(args.viewpoint)
         if mask.dtype == bool:
             plan = planner.plan_masked(cloud, mask, viewpoint, seed=args.seed)
@@ -558,6 +720,10 @@ def _plan_frame(args: argparse.Namespace) -> int:
     from sgjax.perception.camera import existing_file
 
     start = time.perf_counter()
+    try:
+        spec = _gripper(args)
+    except ValueError as exc:
+        return _fail(str(exc))
     scale = 1000.0 if args.depth_scale is None else args.depth_scale
     top = 1 if args.top is None else args.top
     if not (np.isfinite(scale) and scale > 0):
@@ -594,11 +760,11 @@ def _plan_frame(args: argparse.Namespace) -> int:
     from sgjax import presets
     from sgjax.grasping import plan_frame
     from sgjax.planner import Planner
-    from sgjax.stage1.database import DBConfig, load_database, load_database_file
 
     try:
-        db = load_database_file(args.db) if args.db else load_database(DBConfig.small() if args.small_db else DBConfig())
-        planner = Planner(model=args.model, db=db, config=presets.get(args.preset))
+        db = _database(spec, args.small_db, args.db, check=args.gripper is not None)
+        with _warnings_as_notes():  # the checkpoint trained for another gripper: one line
+            planner = Planner(model=args.model, db=db, config=presets.get(args.preset, gripper=spec))
         setup_s = time.perf_counter() - start - perception_s
         result = plan_frame(planner, frame, all_objects=args.all_objects, top=top, seed=args.seed)
     except (ValueError, FileNotFoundError) as exc:
@@ -710,27 +876,32 @@ def _cmd_example_frame(args: argparse.Namespace) -> int:
 def _cmd_declutter(args: argparse.Namespace) -> int:
     from eval.benchmark import result_json, run_benchmark
     from eval.declutter import DeclutterConfig
-    from eval.methods import MethodUnavailable
+    from eval.methods import MethodUnavailable, check_method, uses_database
     from eval.protocol import with_preset
     from eval.report import percent
 
     options = {"model": args.model, "small_db": args.small_db}
     method = with_preset(args.method, args.preset)
     try:
-        result = run_benchmark(
-            method,
-            setting=args.setting,
-            scenes=args.scenes,
-            seed=args.seed,
-            out=args.out,
-            objects=args.objects,
-            n_objects=args.n_objects,
-            method_options=options,
-            config=DeclutterConfig(backend=args.backend, remember_failures=not args.no_memory, sensor=args.camera,
-                                   masks=args.masks),
-            pictures=args.pictures,
-            progress=not args.quiet,
-        )
+        spec = _gripper(args)
+        if spec != DeclutterConfig().gripper and uses_database(method):
+            check_method(method, **options)  # an unknown method or option first, then the database build
+            _prepare_database(spec, args.small_db)  # no shipped database for this gripper: built once, with a note
+        with _warnings_as_notes():  # e.g. the method's checkpoint was trained for another gripper: one line
+            result = run_benchmark(
+                method,
+                setting=args.setting,
+                scenes=args.scenes,
+                seed=args.seed,
+                out=args.out,
+                objects=args.objects,
+                n_objects=args.n_objects,
+                method_options=options,
+                config=DeclutterConfig(backend=args.backend, remember_failures=not args.no_memory, sensor=args.camera,
+                                       masks=args.masks, gripper=spec),
+                pictures=args.pictures,
+                progress=not args.quiet,
+            )
     except (ValueError, MethodUnavailable, FileNotFoundError) as exc:  # UnknownMethod is a ValueError
         return _fail(str(exc))
     except KeyboardInterrupt:
@@ -815,6 +986,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--force", action="store_true", help="rebuild even if the file exists")
     p.add_argument("--ship", action="store_true",
                    help="also write it compressed into the package (sgjax/models/primitive_db), the copy new users load")
+    _add_gripper(p, "the gripper whose templates it holds: a preset or a .toml / .json gripper file (default: the "
+                    "default gripper, whose database ships); another gripper's is built into the cache (~3 min on 2 cores)")
     p.set_defaults(func=_cmd_build_db)
 
     p = sub.add_parser("candidates", help="Stage-1 grasp candidates for one object cloud")
@@ -827,6 +1000,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print JSON")
     p.add_argument("--png", metavar="OUT.png", help="draw the cloud with the top grasps")
     p.add_argument("--seed", type=int, default=0)
+    _add_gripper(p)
     p.set_defaults(func=_cmd_candidates)
 
     p = sub.add_parser(
@@ -867,6 +1041,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--png", metavar="OUT.png", help="draw the grasps: on the cloud (cloud form), on the image and the "
                    "cloud (depth form)")
     p.add_argument("--seed", type=int, default=0)
+    _add_gripper(p, GRIPPER_HELP + "; a gripper other than the default one builds its primitive database into the "
+                 "cache on first use (~3 min on 2 cores), and --model should be trained for it (else a warning)")
     p.set_defaults(func=_cmd_plan)
 
     p = sub.add_parser(
@@ -964,6 +1140,8 @@ def build_parser() -> argparse.ArgumentParser:
         "its optimiser state is not used), e.g. to go on training a checkpoint on more data",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar or per-epoch lines")
+    _add_gripper(p, "the gripper the labels of --data were made for (`sgjax label --gripper`): checked against the "
+                 "data's label_config.json; the run takes the data's gripper, recorded in its checkpoints' meta")
     p.set_defaults(func=_cmd_train)
 
     p = sub.add_parser(
@@ -1028,6 +1206,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--small-db", action="store_true", help="the small primitive database (tests, quick runs)")
     p.add_argument("--threads", type=int, default=0, help="simulation threads (default: all cores; with --ray: per worker, default 1)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    _add_gripper(p, GRIPPER_HELP + "; the simulated gripper, Stage 1 and the crops follow it, and label_config.json "
+                 "records it whole (a directory resumes only with the same gripper)")
     p.set_defaults(func=_cmd_label)
     p = sub.add_parser(
         "declutter",
@@ -1069,6 +1249,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--json", action="store_true", help='print {"GSR", "TSR", "GA", "scenes", ...} as JSON')
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    _add_gripper(p, GRIPPER_HELP + "; the simulated gripper and the method's are this one (logs record it)")
     p.set_defaults(func=_cmd_declutter)
 
     p = sub.add_parser(

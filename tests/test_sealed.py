@@ -134,3 +134,9 @@ def test_the_report_runs_every_table_i_method_on_the_reserved_seed():
     assert dict(table_i.SETTINGS)["unseen-10"] == sealed.SEALED_OBJECT_SET
     names = {m.split("@")[0] for m in table_i.METHODS}
     assert names == {n for n, info in METHODS.items() if not info.diagnostic}
+
+
+def test_the_report_command_names_an_unknown_method_before_any_work(tmp_path, capsys):
+    assert main(["table-i", "--out", str(tmp_path / "report"), "--methods", "supergrasp,no-such-method"]) == 2
+    assert "unknown method 'no-such-method'" in capsys.readouterr().err
+    assert not (tmp_path / "report").exists()

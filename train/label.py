@@ -17,7 +17,8 @@ Held out: `held_out_objects` (seen objects never trained on) appear only in ever
 (`train.dataset.split_by_scene`).
 
 Output directory:
-    label_config.json               what made the data; a resumed run must match it
+    label_config.json               what made the data; a resumed run must match it (for a gripper other
+                                    than the default, its whole spec in "gripper": closing force, friction)
     scenes-SSSSSS-EEEEEE.npz        samples and clouds of scenes [S, E) (a shard; atomic)
     scenes-SSSSSS-EEEEEE.json       their statistics (written before the shard)
 A shard's existence marks its scenes done: an interrupted run resumes with the scenes no shard
@@ -50,6 +51,7 @@ from envs import sealed
 from envs.outcome import Outcome
 from envs.trial import TrialConfig, check_backend, run_grasp_with_refinements
 from sgjax.geometry.gripper import GripperSpec
+from sgjax.geometry.gripper_files import gripper_from_dict, gripper_to_dict
 from sgjax.perception import PerceptionError
 from sgjax.samplers.gpd import GPDConfig
 from sgjax.stage1.pipeline import Stage1, Stage1Config
@@ -59,6 +61,7 @@ from sgjax.utils.files import atomic_write_text
 from train import dataset, sources
 
 CONFIG_FILE = "label_config.json"
+GRIPPER_ENTRY = "gripper"  # label_config.json: the whole gripper (`gripper_to_dict`), for a non-default gripper
 SHARD_PATTERN = re.compile(r"^scenes-(\d{6})-(\d{6})\.npz$")
 # Seen objects never trained on (one thin, one round, one box-like, one flat extrusion): every
 # held_out_object_every-th scene is built around them, and no other scene contains them.
@@ -147,13 +150,39 @@ class LabelConfig:
         """Whether scene `index` is built around the held-out objects."""
         return bool(self.held_out_objects) and index % self.held_out_object_every == self.held_out_object_every - 1
 
+    def with_gripper(self, gripper: GripperSpec) -> LabelConfig:
+        """This config labelling with `gripper`: Stage 1's and the GPD-style sampler's spec (the two that
+        must agree), which the simulated gripper of every scene is built from too (`labelled_scene`)."""
+        if self.spec == gripper and self.gpd.spec == gripper:
+            return self
+        return dataclasses.replace(self, stage1=dataclasses.replace(self.stage1, spec=gripper),
+                                   gpd=dataclasses.replace(self.gpd, spec=gripper))
+
     def to_json(self) -> str:
-        return json.dumps(dataclasses.asdict(self), sort_keys=True, default=str)
+        """The config as label_config.json holds it: `dataclasses.asdict`, which keeps a GripperSpec's
+        geometry only, and for any gripper but the default one a "gripper" entry, the whole spec as a
+        gripper file's table (`gripper_to_dict`: its closing force and pad friction too). A default
+        gripper's config is written as it always was."""
+        data = dataclasses.asdict(self)
+        if self.spec != GripperSpec():
+            data[GRIPPER_ENTRY] = gripper_to_dict(self.spec)
+        return json.dumps(data, sort_keys=True, default=str)
 
     @classmethod
     def from_json(cls, text: str) -> LabelConfig:
-        """The config `to_json` wrote (ValueError naming a field this version does not know)."""
-        return from_dict(cls, json.loads(text))
+        """The config `to_json` wrote (ValueError naming a field this version does not know, or a
+        "gripper" entry that does not read or disagrees with stage1.spec's geometry). Without a
+        "gripper" entry (the default gripper, and every directory written before the entry existed) the
+        gripper is stage1.spec with the default closing force and friction."""
+        data = json.loads(text)
+        record = data.pop(GRIPPER_ENTRY, None) if isinstance(data, dict) else None
+        config = from_dict(cls, data)  # ValueError for anything but a mapping of fields
+        if record is None:
+            return config
+        gripper = gripper_from_dict(record, f"{CONFIG_FILE}: {GRIPPER_ENTRY}")
+        if dataclasses.asdict(gripper) != dataclasses.asdict(config.spec):
+            raise ValueError(f"{CONFIG_FILE}: its {GRIPPER_ENTRY} entry and stage1.spec are different grippers")
+        return config.with_gripper(gripper)
 
 
 
@@ -182,6 +211,7 @@ def label_config(
     per_source: str | None = None,
     held_out_objects: str | None = None,
     note: Callable[[str], None] | None = None,
+    gripper: GripperSpec | None = None,
 ):
     """The `train.label.LabelConfig` of `sgjax label`'s options (the CLI and recipes both build it here:
     a labelled directory compares its stored config with the requested one, so a recipe resumes a set
@@ -189,7 +219,8 @@ def label_config(
 
     per_source: "SOURCE=N,..." (None: LabelConfig's default); held_out_objects: "NAME,..." or ""/"none"
     for none (None: the default held-out objects for the seen set, none for other sets, said through
-    `note`). Raises ValueError naming the option.
+    `note`); gripper: the gripper to label with (`LabelConfig.with_gripper`; None: the default one).
+    Raises ValueError naming the option.
     """
     extra: dict[str, Any] = {}
     if per_source is not None:
@@ -200,9 +231,10 @@ def label_config(
         extra["held_out_objects"] = ()
         if note is not None:
             note(f"no held-out objects in {objects!r} (name some with --held-out-objects)")
-    return LabelConfig(
+    config = LabelConfig(
         n_objects=n_objects, targets_per_scene=targets_per_scene, object_set=objects, seed=seed, sensor=camera, **extra
     )
+    return config if gripper is None else config.with_gripper(gripper)
 
 def read_config(out_dir: str | os.PathLike) -> LabelConfig:
     """The LabelConfig a labelled directory was made with (its label_config.json)."""
@@ -211,6 +243,45 @@ def read_config(out_dir: str | os.PathLike) -> LabelConfig:
         raise FileNotFoundError(f"{path} not found: not a labelled directory (sgjax label --out)")
     with open(path) as fh:
         return LabelConfig.from_json(fh.read())
+
+
+def directory_gripper(directory: str | os.PathLike) -> GripperSpec:
+    """The whole gripper a labelled directory was made with: its label_config.json's "gripper" entry, else
+    (the default gripper, a directory written before the entry existed) its stage1.spec with the default
+    force and friction; the default gripper without a label_config.json. Only the gripper is read, so
+    a config this version would not read whole still gives it (as `train.dataset.directory_spec`)."""
+    path = os.path.join(os.fspath(directory), CONFIG_FILE)
+    if not os.path.exists(path):
+        return GripperSpec()
+    with open(path) as fh:
+        saved = json.load(fh)
+    record = saved.get(GRIPPER_ENTRY) if isinstance(saved, dict) else None
+    if record is not None:
+        return gripper_from_dict(record, f"{path}: {GRIPPER_ENTRY}")
+    try:
+        return from_dict(GripperSpec, saved["stage1"]["spec"])
+    except (KeyError, TypeError) as exc:
+        raise ValueError(f"{path}: no readable stage1.spec ({exc!r})") from None
+
+
+def data_gripper(directories: str | os.PathLike | Sequence[str | os.PathLike]) -> GripperSpec:
+    """The gripper labelled directories were made with, the whole spec (`directory_gripper`); a
+    directory without a label_config.json (shards written otherwise, e.g. `sgjax train --synthetic`)
+    counts as the default gripper, as `train.dataset.directory_spec` crops it. Raises ValueError (one
+    line) when they were made for different grippers: a network is trained for one."""
+    from sgjax.stage2.checkpoint import describe_gripper
+
+    dirs = [directories] if isinstance(directories, (str, os.PathLike)) else list(directories)
+    found = {os.fspath(directory): directory_gripper(directory) for directory in dirs}
+    specs = list(dict.fromkeys(found.values()))
+    if len(specs) > 1:
+        first = next(iter(found))
+        other = next(d for d, s in found.items() if s != found[first])
+        raise ValueError(
+            f"the label directories were made for different grippers: {first} for {describe_gripper(found[first], found[other])}, "
+            f"{other} for {describe_gripper(found[other], found[first])}: train on directories of one gripper"
+        )
+    return specs[0] if specs else GripperSpec()
 
 
 @dataclasses.dataclass
@@ -278,7 +349,10 @@ class Labellers:
     @classmethod
     def make(cls, config: LabelConfig, stage1: Stage1 | None = None) -> Labellers:
         """stage1: a Stage1 of config.stage1 (default: on the full primitive database)."""
-        stage1 = Stage1(None, config.stage1) if stage1 is None else stage1
+        if stage1 is None:  # the database of the config's gripper (the shipped one for the default gripper)
+            from sgjax.stage1.database import DBConfig, load_database
+
+            stage1 = Stage1(load_database(DBConfig(spec=config.spec)), config.stage1)
         if stage1.config != config.stage1:
             raise ValueError("stage1.config differs from config.stage1")
         return cls(stage1, Stage1(stage1.db, sources.paper_filters(config.stage1)))
@@ -525,6 +599,19 @@ def pending_blocks(
     return todo
 
 
+def same_config(saved: str, config: LabelConfig) -> bool:
+    """Whether label_config.json text `saved` is `config`: the same text, or read back (`from_json`) an
+    equal config, the whole gripper included (closing force and friction: `GripperSpec.__eq__`). Compared
+    as configs, not as text: a field added since (at its default) reads back the same, and a directory
+    written before the "gripper" entry existed reads back as the default gripper."""
+    if saved == config.to_json():
+        return True
+    try:
+        return LabelConfig.from_json(saved) == config
+    except ValueError:  # a field this version does not know, a gripper entry that does not read
+        return False
+
+
 def check_out_dir(out_dir: str, config: LabelConfig) -> None:
     """Create out_dir with `label_config.json`, or check that the config saved there is `config`;
     ValueError if it holds data made with another config."""
@@ -537,11 +624,7 @@ def check_out_dir(out_dir: str, config: LabelConfig) -> None:
     # directory race to write it, and one with other options must not go on to mix its data in.
     with open(path) as fh:
         saved = fh.read()
-    try:  # compared as configs, not as text: a field added since (at its default) reads back the same
-        same = saved == text or LabelConfig.from_json(saved) == config
-    except ValueError:
-        same = False
-    if not same:
+    if not same_config(saved, config):
         raise ValueError(
             f"{out_dir} holds data made with a different labelling config ({path}); "
             "use a new --out directory or the same options"

@@ -93,7 +93,8 @@ def train(
 
     config: a TrainConfig whose `model` is a PointNetGPDConfig (None: `default_config()`). Resumes
     like `train.trainer.train`. Writes run_dir/{checkpoints/, metrics.json, metrics.csv, curves.png}
-    with meta["network"] = "pointnetgpd". init: a PointNetGPD run directory to start from, as in
+    with meta["network"] = "pointnetgpd" and, as every run of `run_training`, meta["gripper"]: the gripper
+    of the labelled directories (`config.spec`, which must be theirs: `train.label.data_gripper`). init: a PointNetGPD run directory to start from, as in
     `train.trainer.train`. extra_meta: JSON entries stored in every checkpoint's meta too (the recipe and
     commit, `train.recipe`); it cannot replace meta["network"].
     """

@@ -43,7 +43,8 @@ import numpy as np
 import optax
 from flax import nnx
 
-from sgjax.stage2.checkpoint import CHECKPOINT_DIR, META_ITEM, OPT_STATE_ITEM, PARAMS_ITEM
+from sgjax.geometry.gripper_files import gripper_to_dict
+from sgjax.stage2.checkpoint import CHECKPOINT_DIR, GRIPPER_ITEM, META_ITEM, OPT_STATE_ITEM, PARAMS_ITEM
 from sgjax.stage2.ernet import (
     DEFAULT_SPEC,
     ERNet,
@@ -77,6 +78,9 @@ class TrainConfig:
         axis "data"), parameters and optimiser state are replicated; `batch_size` must be divisible
         by it. 1 (default): one device, as before. It changes where the step runs, not what it
         computes (up to the order of float sums), so a resumed run may change it.
+    spec: the gripper of the training data (`train.label.data_gripper`: a labelled directory records
+        it); a run on directories labelled for another gripper is refused. Every checkpoint's meta
+        records it whole (meta["gripper"], `sgjax.stage2.checkpoint.meta_gripper`).
     """
 
     epochs: int = 100
@@ -552,6 +556,23 @@ def train(
                         init=init)
 
 
+def check_data_gripper(data, spec: GripperSpec) -> None:
+    """Refuse (ValueError, one line) labelled directories made for another gripper than `spec`, the one
+    the crops and the checkpoint's meta follow, or directories of different grippers
+    (`train.label.data_gripper`). Columns given as a mapping carry no gripper: `spec` is theirs."""
+    if isinstance(data, Mapping):
+        return
+    from sgjax.stage2.checkpoint import describe_gripper
+    from train.label import data_gripper
+
+    found = data_gripper(data)
+    if found != spec:
+        where = data if isinstance(data, (str, os.PathLike)) else ", ".join(os.fspath(d) for d in data)
+        raise ValueError(f"{where} was labelled for gripper {describe_gripper(found, spec)} but the training config's "
+                         f"gripper is {describe_gripper(spec, found)}: train with the data's gripper "
+                         "(TrainConfig(spec=train.label.data_gripper(dirs)); `sgjax train` takes it from the data)")
+
+
 def initial_model(init: str | os.PathLike, model_config, load: Callable[[str], nnx.Module]) -> nnx.Module:
     """The network of run directory `init` (latest epoch) to start a run from; ValueError when its
     config is not `model_config` (the weights would not fit) or it holds no checkpoint."""
@@ -591,6 +612,7 @@ def run_training(
 
     run_dir = os.fspath(run_dir)
     placement = Placement.for_devices(config.devices)  # before reading data: a bad device count fails fast
+    check_data_gripper(data, config.spec)  # before any work: labels of one gripper, the config's
     os.makedirs(run_dir, exist_ok=True)
     train_set, held_set, objects_set = _load_data(data, config)
     n_train, n_held = len(train_set["label"]), len(held_set["label"])
@@ -605,6 +627,8 @@ def run_training(
     fingerprint = {"config": config.resume_key(), "n_train": n_train, "n_held_out": n_held}
     if init is not None:  # only then: runs started from scratch keep the fingerprint they always had
         fingerprint["init"] = os.path.abspath(os.fspath(init))
+    if config.spec != GripperSpec():  # likewise: the whole gripper (resume_key holds its geometry only)
+        fingerprint["gripper"] = gripper_to_dict(config.spec)
     if start:
         saved = manager.restore(start, args=ocp.args.Composite(**{META_ITEM: ocp.args.JsonRestore()}))[META_ITEM]
         if saved["fingerprint"] != fingerprint:
@@ -665,6 +689,8 @@ def run_training(
                 "history": history,
                 "model_config": config.model.to_dict(),
                 "fingerprint": fingerprint,
+                # The gripper of the training data, whole (`sgjax.stage2.checkpoint.meta_gripper` reads it).
+                GRIPPER_ITEM: gripper_to_dict(config.spec),
             }
             manager.save(
                 epoch + 1,

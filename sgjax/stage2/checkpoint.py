@@ -5,18 +5,27 @@ A run directory (`sgjax train --out RUN_DIR`) holds `checkpoints/<epoch>/{params
 reads a checkpoint shipped in `sgjax/models/` (once per process), and `as_model` turns what a user
 passes as "the model" (None for the shipped default, a model, or a run directory) into a model. Each
 network module (`ernet`, `pointnetgpd`) binds these to its own class, shape-only model and directory.
+
+A checkpoint knows its gripper: the trainer records `gripper_to_dict(spec)` of its training data as
+meta["gripper"]; `checkpoint_gripper(run_dir)` / `meta_gripper(meta)` read it back (a checkpoint without
+the record, as the shipped ones, counts as the default gripper), and `gripper_mismatch` words the warning
+a planner gives when it plans for another gripper than its network was trained for.
 """
 
 from __future__ import annotations
 
 import functools
 import os
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import jax
 from flax import nnx
+
+from sgjax.geometry.gripper import GripperSpec
+from sgjax.geometry.gripper_files import gripper_from_dict
 
 CHECKPOINT_DIR = "checkpoints"  # inside a run directory
 PARAMS_ITEM, OPT_STATE_ITEM, META_ITEM = "params", "opt_state", "meta"
@@ -96,3 +105,124 @@ def as_model(model, model_type: type, load_model: LoadModel, default: Callable[[
     if isinstance(model, (str, os.PathLike)):
         return load_model(model)[0]
     raise TypeError(f"model must be {what} or None, got {type(model).__name__}")
+
+
+# ---------------------------------------------------------------------------------------------
+# The gripper a checkpoint was trained for (the trainer records `gripper_to_dict(spec)` as meta["gripper"]).
+
+GRIPPER_ITEM = "gripper"  # the meta entry
+DEFAULT_CHECKPOINT_NAMES = {ERNET_DEFAULT_DIR: "sgjax/models/ernet_default",
+                            POINTNETGPD_DEFAULT_DIR: "sgjax/models/pointnetgpd_default"}
+IN_MEMORY = "an in-memory model"
+
+
+def read_meta(run_dir: str | os.PathLike, epoch: int | None = None) -> dict[str, Any]:
+    """The JSON meta of a run directory's checkpoint (None: the latest epoch), without its parameters.
+
+    Raises FileNotFoundError when there is no such checkpoint."""
+    import orbax.checkpoint as ocp
+
+    directory = os.path.abspath(os.path.join(os.fspath(run_dir), CHECKPOINT_DIR))
+    if not os.path.isdir(directory):
+        raise FileNotFoundError(f"no checkpoints in {run_dir} (expected {directory})")
+    manager = ocp.CheckpointManager(directory, options=ocp.CheckpointManagerOptions(create=False))
+    try:
+        step = manager.latest_step() if epoch is None else epoch
+        if step is None or step not in manager.all_steps():
+            raise FileNotFoundError(f"no checkpoint for epoch {epoch} in {directory} (have {manager.all_steps()})")
+        return manager.restore(step, args=ocp.args.Composite(**{META_ITEM: ocp.args.JsonRestore()}))[META_ITEM]
+    finally:
+        manager.close()
+
+
+def meta_gripper(meta: dict[str, Any], source: str = "checkpoint") -> GripperSpec:
+    """The gripper a checkpoint's meta records (meta["gripper"], `gripper_to_dict`'s table); a meta
+    without the record (every checkpoint written before it existed, the shipped ones included) counts
+    as the default gripper, `GripperSpec()`. A record that does not read raises GripperFileError."""
+    record = meta.get(GRIPPER_ITEM) if isinstance(meta, dict) else None
+    if record is None:
+        return GripperSpec()
+    return gripper_from_dict(record, f"{source}: meta[{GRIPPER_ITEM!r}]")
+
+
+@functools.lru_cache(maxsize=16)
+def _run_gripper(path: str, mtime: float) -> GripperSpec:
+    return meta_gripper(read_meta(path), path)
+
+
+def checkpoint_gripper(run_dir: str | os.PathLike) -> GripperSpec:
+    """The gripper the latest checkpoint of a run directory was trained for (`meta_gripper` of its meta):
+    what the command line and `sgjax.planner.Planner` compare with the gripper they plan for. Read once
+    per directory and version (cached)."""
+    path = os.path.abspath(os.fspath(run_dir))
+    directory = os.path.join(path, CHECKPOINT_DIR)
+    mtime = os.path.getmtime(directory) if os.path.isdir(directory) else 0.0
+    return _run_gripper(path, mtime)
+
+
+def checkpoint_name(model, default_dir: Path) -> str:
+    """How to name the checkpoint behind what a user passed as "the model" (None, a run directory or a
+    model): "sgjax/models/ernet_default" for the shipped one, the run directory, or "an in-memory model"."""
+    if model is None:
+        return DEFAULT_CHECKPOINT_NAMES.get(default_dir, str(default_dir))
+    if isinstance(model, (str, os.PathLike)):
+        return os.fspath(model)
+    return IN_MEMORY
+
+
+def model_gripper(model, default_dir: Path) -> GripperSpec | None:
+    """The gripper of the checkpoint behind `model` as `checkpoint_name` names it (None, the shipped
+    checkpoint in `default_dir`; a run directory); None for a model in memory (its gripper is unknown)."""
+    if model is None:
+        return checkpoint_gripper(default_dir)
+    if isinstance(model, (str, os.PathLike)):
+        return checkpoint_gripper(model)
+    return None
+
+
+def describe_gripper(spec: GripperSpec, other: GripperSpec | None = None) -> str:
+    """"robotiq-2f85 (max_opening 0.085 m, ...)": the preset `spec` equals (else "a custom gripper"), with
+    up to three of the values that differ from `other` (max_opening, finger_length and closing_force when
+    None), the stroke, the fingers and the force first."""
+    from sgjax.geometry.gripper_files import gripper_to_dict, load_gripper, preset_names
+
+    name = next((n for n in preset_names() if load_gripper(n) == spec), "a custom gripper")
+    mine = gripper_to_dict(spec)
+    if other is None:
+        keys = ["max_opening", "finger_length", "closing_force"]
+    else:
+        theirs = gripper_to_dict(other)
+        keys = sorted((k for k in mine if mine[k] != theirs[k]), key=lambda k: (k not in _FIRST, _FIRST.index(k) if k in _FIRST else 0))
+        keys = keys or ["max_opening"]
+    units = {"closing_force": " N", "finger_friction": "", "refine_angles_deg": " deg"}
+    shown = ", ".join(f"{k} {_number(mine[k])}{units.get(k, ' m')}" for k in keys[:3])
+    return f"{name} ({shown}{', ...' if len(keys) > 3 else ''})"
+
+
+_FIRST = ["max_opening", "finger_length", "closing_force", "finger_friction"]  # shown first by describe_gripper
+
+
+def _number(value) -> str:
+    if isinstance(value, list):
+        return "[" + ", ".join(f"{v:g}" for v in value) + "]"
+    return f"{value:g}"
+
+
+def gripper_mismatch(network: str, checkpoint: str, trained: GripperSpec | None, spec: GripperSpec) -> str | None:
+    """The warning for a network checkpoint trained for gripper `trained` that plans for gripper `spec`;
+    None when they agree or the checkpoint's gripper is unknown (a model in memory)."""
+    if trained is None or trained == spec:
+        return None
+    return (f"{network} checkpoint {checkpoint} was trained for gripper {describe_gripper(trained, spec)} but plans "
+            f"for gripper {describe_gripper(spec, trained)}: retrain with `sgjax label --gripper` and "
+            "`sgjax train` on those labels")
+
+
+def warn_gripper(network: str, model, default_dir: Path, spec: GripperSpec, stacklevel: int = 3) -> str | None:
+    """`warnings.warn` the `gripper_mismatch` of the checkpoint behind `model` (None: the one shipped in
+    `default_dir`; a run directory; a model in memory is never warned about) planning for `spec`;
+    returns the message (None: no warning)."""
+    message = gripper_mismatch(network, checkpoint_name(model, default_dir), model_gripper(model, default_dir), spec)
+    if message is not None:
+        warnings.warn(message, stacklevel=stacklevel)
+    return message
