@@ -151,8 +151,11 @@ def without_avoided(cands: CandidateSet, avoid, spec: GripperSpec) -> CandidateS
 def gpd_candidates(points, labels, viewpoint, seed: int, config: BaselineConfig) -> CandidateSet:
     """The GPD-style generator (sgjax/samplers/gpd.py stages 1 and 2) -> its kept candidates, padded.
 
-    A seeded uniform subset of them when there are more than `max_candidates`."""
-    cfg, slots = config.gpd, config.max_candidates
+    A seeded uniform subset of them when there are more than `max_candidates` (both the samples and the
+    slots times `gpd_sampler.budget_factor` for scenes with many objects in view)."""
+    # The sampling budget and the scored slots grow alike with the objects in view (`GPDConfig.objects_per_budget`).
+    cfg, factor = gpd_sampler.scaled_to_scene(config.gpd, labels)
+    slots = config.max_candidates * factor
     cloud, mask, table_z, n = gpd_sampler.prepare_cloud(points, labels, cfg, seed)
     if n < cfg.min_points:
         return _empty(slots, f"only {n} object points seen", {"object_points": n})

@@ -10,7 +10,7 @@ import time
 import jax
 import numpy as np
 
-from sgjax.samplers.gpd import GPDConfig, candidates, evaluate, prepare_cloud
+from sgjax.samplers.gpd import GPDConfig, candidates, evaluate, prepare_cloud, scaled_to_scene
 from eval.protocol import Decision, near_grasps
 
 
@@ -25,8 +25,8 @@ class GPDMethod:
     def plan(self, points: np.ndarray, labels: np.ndarray, viewpoint, seed: int = 0, avoid=None) -> Decision:
         """Best grasp for a scene cloud points [P, 3] (world) with labels [P] (object id, < 0 table),
         leaving out the same grasps as the poses in avoid [F, 4, 4] (failed ones; see eval/protocol.py)."""
-        cfg = self.config
         start = time.perf_counter()
+        cfg, _ = scaled_to_scene(self.config, labels)  # more objects in view, more samples
         cloud, mask, table_z, n = prepare_cloud(points, labels, cfg, seed)
         if n < cfg.min_points:
             elapsed = time.perf_counter() - start

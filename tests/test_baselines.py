@@ -253,6 +253,29 @@ def test_pointnetgpd_method(pointnetgpd_run, objects, observation):
     assert all(a["info"]["generator"] == "gpd" for a in run.log["attempts"])
 
 
+def test_the_gpd_budget_grows_with_the_objects_in_view(observation):
+    """GPD-style samples and scored slots scale with ceil(objects in view / objects_per_budget); objects
+    with fewer than min_points points are not in view; 0 keeps the budget fixed."""
+    from sgjax.samplers import gpd as gpd_sampler
+
+    points, labels, view = observation
+    cfg = CONFIG.gpd
+    labels_of = lambda counts: np.concatenate([np.full(c, i) for i, c in enumerate(counts)] + [np.full(5, -1)])
+    assert gpd_sampler.budget_factor(labels_of([50] * 10), cfg) == 1
+    assert gpd_sampler.budget_factor(labels_of([50] * 11), cfg) == 2
+    assert gpd_sampler.budget_factor(labels_of([50] * 10 + [cfg.min_points - 1] * 5), cfg) == 1
+    assert gpd_sampler.budget_factor(labels_of([50] * 25), dataclasses.replace(cfg, objects_per_budget=0)) == 1
+    in_view = len([i for i, c in zip(*np.unique(labels, return_counts=True)) if i >= 0 and c >= cfg.min_points])
+    assert in_view == 2
+    one = dataclasses.replace(CONFIG, gpd=dataclasses.replace(cfg, objects_per_budget=1))  # two objects: twice
+    cands = baselines.gpd_candidates(points, labels, view, 3, one)
+    fixed = baselines.gpd_candidates(points, labels, view, 3, dataclasses.replace(CONFIG, gpd=dataclasses.replace(cfg, objects_per_budget=0)))
+    assert cands.info["sampled"] == 2 * fixed.info["sampled"] == 2 * cfg.num_samples * cfg.num_angles
+    assert len(cands.widths) == 2 * len(fixed.widths) == 2 * CONFIG.max_candidates
+    with pytest.raises(ValueError, match="objects_per_budget"):
+        dataclasses.replace(cfg, objects_per_budget=-1)
+
+
 def rigged_ernet(eval_bias, refine_bias):
     tiny = ERNetConfig.tiny(backbone=dataclasses.replace(ERNetConfig.tiny().backbone, sampler="random"))
     model = ERNet(tiny, rngs=nnx.Rngs(0))

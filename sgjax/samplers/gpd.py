@@ -74,11 +74,17 @@ class GPDConfig:
     approach_clearance: float = 0.05  # TrialConfig.pregrasp_distance: the approach path is checked too
     table_clearance: float = 0.003
     spec: GripperSpec = dataclasses.field(default_factory=GripperSpec)
+    # num_samples serve up to this many objects in view; a scene with more gets a multiple of it
+    # (`scaled_to_scene`): a fixed budget left dense scenes short of candidates (docs/experiments.md,
+    # 2026-12-05). 0: a fixed budget.
+    objects_per_budget: int = 10
 
     def __post_init__(self):
         for name in ("voxel_size", "max_points", "num_samples", "num_angles", "depth_steps", "normal_neighbours"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"GPDConfig.{name} must be positive, got {getattr(self, name)}")
+        if self.objects_per_budget < 0:
+            raise ValueError(f"GPDConfig.objects_per_budget must be >= 0 (0: a fixed budget), got {self.objects_per_budget}")
         if not 1 <= self.lateral_steps <= 4:
             raise ValueError(f"GPDConfig.lateral_steps must be in [1, 4], got {self.lateral_steps}")
         if not 0 <= self.max_approach_angle_deg <= 90:
@@ -102,6 +108,23 @@ def first_per_voxel(points: np.ndarray, voxel: float) -> np.ndarray:
     keys = np.floor(np.asarray(points, np.float64) / voxel).astype(np.int64)
     _, first = np.unique(keys, axis=0, return_index=True)
     return np.sort(first)
+
+
+def budget_factor(labels: np.ndarray, config: GPDConfig) -> int:
+    """How many times `num_samples` a scene gets: ceil(objects in view / objects_per_budget), at least 1
+    (labels [P]: an object is in view with at least `min_points` points). Whole multiples keep the number
+    of compiled shapes small (one per factor)."""
+    if config.objects_per_budget == 0:
+        return 1
+    ids, counts = np.unique(np.asarray(labels).reshape(-1), return_counts=True)
+    in_view = int(np.sum((ids >= 0) & (counts >= config.min_points)))
+    return max(1, -(-in_view // config.objects_per_budget))
+
+
+def scaled_to_scene(config: GPDConfig, labels: np.ndarray) -> tuple[GPDConfig, int]:
+    """(config with num_samples times `budget_factor`, the factor) for the scene of labels [P]."""
+    factor = budget_factor(labels, config)
+    return (config if factor == 1 else dataclasses.replace(config, num_samples=config.num_samples * factor)), factor
 
 
 def prepare_cloud(
