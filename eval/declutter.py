@@ -61,24 +61,61 @@ MASKS = ("truth", "clusters")
 
 @dataclasses.dataclass(frozen=True)
 class Setting:
-    """A benchmark setting: how many objects per scene, from which object set."""
+    """A benchmark setting: how many objects per scene, from which object set; a setting may also fix the
+    gripper (a preset of `sgjax.geometry.gripper_files`), the sensor and the masks (`apply_setting`)."""
 
     name: str
     n_objects: int
     object_set: str
+    gripper: str | None = None
+    sensor: str | None = None
+    masks: str | None = None
+
+    @property
+    def fixes_hardware(self) -> bool:
+        return (self.gripper, self.sensor, self.masks) != (None, None, None)
 
 
+# The paper's Table I in simulation, and its real-world Table II re-created as closely as simulation
+# allows: the DH-Robotics AG-105-145 gripper, stereo depth (the paper's ZED 2i) and masks the front end
+# segments itself (the paper used SAM), 10 seen ("similar") or 10 unseen ("novel") objects per scene.
 SETTINGS = {
     s.name: s
-    for s in (Setting("seen-10", 10, "seen"), Setting("seen-20", 20, "seen"), Setting("unseen-10", 10, "unseen"))
+    for s in (
+        Setting("seen-10", 10, "seen"),
+        Setting("seen-20", 20, "seen"),
+        Setting("unseen-10", 10, "unseen"),
+        Setting("real-similar", 10, "seen", gripper="ag-105-145", sensor="stereo", masks="clusters"),
+        Setting("real-novel", 10, "unseen", gripper="ag-105-145", sensor="stereo", masks="clusters"),
+    )
 }
 
 
 def get_setting(name: str) -> Setting:
-    """The setting called `name` (seen-10, seen-20, unseen-10); ValueError listing them otherwise."""
+    """The setting called `name` (seen-10, seen-20, unseen-10, real-similar, real-novel); ValueError listing
+    them otherwise."""
     if name not in SETTINGS:
         raise ValueError(f"unknown setting {name!r}: expected one of {', '.join(SETTINGS)}")
     return SETTINGS[name]
+
+
+def apply_setting(setting: Setting, config: "DeclutterConfig") -> "DeclutterConfig":
+    """`config` with the gripper, sensor and masks the setting fixes. A config value left at its default
+    takes the setting's; one set to something else is a contradiction (ValueError naming both)."""
+    from sgjax.geometry.gripper_files import load_gripper
+
+    default = DeclutterConfig()
+    changes = {}
+    for field, wanted in (("gripper", setting.gripper and load_gripper(setting.gripper)), ("sensor", setting.sensor),
+                          ("masks", setting.masks)):
+        if wanted is None:
+            continue
+        have = getattr(config, field)
+        if have != default.__getattribute__(field) and have != wanted:
+            shown = setting.gripper if field == "gripper" else wanted
+            raise ValueError(f"setting {setting.name!r} fixes the {field} ({shown}); the config asks for another")
+        changes[field] = wanted
+    return dataclasses.replace(config, **changes) if changes else config
 
 
 @dataclasses.dataclass(frozen=True)

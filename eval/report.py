@@ -32,7 +32,7 @@ from sgjax.geometry.gripper import GripperSpec
 
 LOGS = "logs"
 PICTURES = "pictures"
-PAPER_SETTINGS = ("seen-10", "seen-20", "unseen-10")
+PAPER_SETTINGS = ("seen-10", "seen-20", "unseen-10", "real-similar", "real-novel")  # Table I, then Table II
 
 
 # ---------------------------------------------------------------------------------------------------

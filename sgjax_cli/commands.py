@@ -1213,7 +1213,8 @@ def build_parser() -> argparse.ArgumentParser:
         "declutter",
         help="decluttering benchmark in simulation (paper Table I): GSR, TSR, GA over N scenes; resumable",
     )
-    p.add_argument("--setting", default="seen-10", help="seen-10 | seen-20 | unseen-10 (default seen-10)")
+    p.add_argument("--setting", default="seen-10", help="seen-10 | seen-20 | unseen-10 (Table I) | real-similar | real-novel (Table II re-created: the "
+                   "ag-105-145 gripper, stereo depth, segmented masks) (default seen-10)")
     p.add_argument("--scenes", type=int, default=30, help="scenes to run (paper: 30)")
     p.add_argument(
         "--method",

@@ -721,3 +721,22 @@ def test_the_exact_sensors_frame_is_the_exact_render_cloud(objects):
     from scipy.spatial import cKDTree
 
     assert cKDTree(exact.points).query(points)[0].max() < 1e-5
+
+
+def test_the_real_world_settings_fix_their_gripper_sensor_and_masks(tmp_path):
+    """Table II re-created: real-similar / real-novel bring the AG-105-145, stereo depth and segmented masks;
+    a config that asks for another of them is refused, and Table I's settings change nothing."""
+    from eval.declutter import apply_setting, get_setting
+    from sgjax.geometry.gripper_files import load_gripper
+
+    for name, objects in (("real-similar", "seen"), ("real-novel", "unseen")):
+        setting = get_setting(name)
+        config = apply_setting(setting, DeclutterConfig())
+        assert setting.object_set == objects and setting.n_objects == 10
+        assert config.gripper == load_gripper("ag-105-145") and config.gripper.max_opening == pytest.approx(0.145)
+        assert (config.sensor, config.masks, config.view) == ("stereo", "clusters", "stereo+clusters")
+        with pytest.raises(ValueError, match=f"setting '{name}' fixes the sensor"):
+            apply_setting(setting, DeclutterConfig(sensor="kinect"))
+        with pytest.raises(ValueError, match="fixes the gripper"):
+            apply_setting(setting, DeclutterConfig(gripper=load_gripper("robotiq-2f85")))
+    assert apply_setting(get_setting("seen-10"), DeclutterConfig(sensor="kinect")) == DeclutterConfig(sensor="kinect")
