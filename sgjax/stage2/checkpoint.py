@@ -14,6 +14,7 @@ a planner gives when it plans for another gripper than its network was trained f
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
 import warnings
@@ -38,6 +39,31 @@ POINTNETGPD_DEFAULT_DIR = MODELS_DIR / "pointnetgpd_default"
 LoadModel = Callable[[str | os.PathLike], tuple[nnx.Module, dict[str, Any]]]
 
 
+@contextlib.contextmanager
+def _checkpoint_step(run_dir: str | os.PathLike, epoch: int | None, missing_hint: str = ""):
+    """(orbax CheckpointManager of the run's checkpoints, the step of `epoch`; None: the latest), closed
+    after use. Raises FileNotFoundError (with `missing_hint`) when there is no such checkpoint."""
+    import orbax.checkpoint as ocp
+
+    directory = os.path.abspath(os.path.join(os.fspath(run_dir), CHECKPOINT_DIR))
+    if not os.path.isdir(directory):
+        raise FileNotFoundError(f"no checkpoints in {run_dir} (expected {directory}){missing_hint}")
+    manager = ocp.CheckpointManager(directory, options=ocp.CheckpointManagerOptions(create=False))
+    try:
+        step = manager.latest_step() if epoch is None else epoch
+        if step is None or step not in manager.all_steps():
+            raise FileNotFoundError(f"no checkpoint for epoch {epoch} in {directory} (have {manager.all_steps()})")
+        yield manager, step
+    finally:
+        manager.close()
+
+
+def _restore_meta(manager, step: int) -> dict[str, Any]:
+    import orbax.checkpoint as ocp
+
+    return manager.restore(step, args=ocp.args.Composite(**{META_ITEM: ocp.args.JsonRestore()}))[META_ITEM]
+
+
 def restore_run(
     run_dir: str | os.PathLike,
     epoch: int | None,
@@ -53,23 +79,14 @@ def restore_run(
     """
     import orbax.checkpoint as ocp
 
-    directory = os.path.abspath(os.path.join(os.fspath(run_dir), CHECKPOINT_DIR))
-    if not os.path.isdir(directory):
-        raise FileNotFoundError(f"no checkpoints in {run_dir} (expected {directory}){missing_hint}")
-    manager = ocp.CheckpointManager(directory, options=ocp.CheckpointManagerOptions(create=False))
-    try:
-        step = manager.latest_step() if epoch is None else epoch
-        if step is None or step not in manager.all_steps():
-            raise FileNotFoundError(f"no checkpoint for epoch {epoch} in {directory} (have {manager.all_steps()})")
-        meta = manager.restore(step, args=ocp.args.Composite(**{META_ITEM: ocp.args.JsonRestore()}))[META_ITEM]
+    with _checkpoint_step(run_dir, epoch, missing_hint) as (manager, step):
+        meta = _restore_meta(manager, step)
         graphdef, abstract = nnx.split(abstract_from_meta(meta))
         # Onto this process's first device whatever the saved sharding was: a run trained on several
         # devices (`sgjax train --devices N`) loads on a machine with fewer.
         device = jax.sharding.SingleDeviceSharding(jax.devices()[0])
         target = jax.tree.map(lambda x: _on(ocp.utils.to_shape_dtype_struct(x), device), abstract)
         restored = manager.restore(step, args=ocp.args.Composite(**{PARAMS_ITEM: ocp.args.StandardRestore(target)}))
-    finally:
-        manager.close()
     return nnx.merge(graphdef, restored[PARAMS_ITEM]), meta
 
 
@@ -120,19 +137,8 @@ def read_meta(run_dir: str | os.PathLike, epoch: int | None = None) -> dict[str,
     """The JSON meta of a run directory's checkpoint (None: the latest epoch), without its parameters.
 
     Raises FileNotFoundError when there is no such checkpoint."""
-    import orbax.checkpoint as ocp
-
-    directory = os.path.abspath(os.path.join(os.fspath(run_dir), CHECKPOINT_DIR))
-    if not os.path.isdir(directory):
-        raise FileNotFoundError(f"no checkpoints in {run_dir} (expected {directory})")
-    manager = ocp.CheckpointManager(directory, options=ocp.CheckpointManagerOptions(create=False))
-    try:
-        step = manager.latest_step() if epoch is None else epoch
-        if step is None or step not in manager.all_steps():
-            raise FileNotFoundError(f"no checkpoint for epoch {epoch} in {directory} (have {manager.all_steps()})")
-        return manager.restore(step, args=ocp.args.Composite(**{META_ITEM: ocp.args.JsonRestore()}))[META_ITEM]
-    finally:
-        manager.close()
+    with _checkpoint_step(run_dir, epoch) as (manager, step):
+        return _restore_meta(manager, step)
 
 
 def meta_gripper(meta: dict[str, Any], source: str = "checkpoint") -> GripperSpec:
