@@ -117,6 +117,15 @@ def _supergrasp_pointnetgpd(model=None, small_db: bool = False, db=None, config=
     return method
 
 
+def _supergrasp_stage1(small_db: bool = False, db=None, config=None, gripper=None) -> Method:
+    from eval.supergrasp import PlannerMethod
+    from sgjax.stage2.scorers import Stage1Order
+
+    _for_gripper("supergrasp-stage1", config, gripper, lambda g: None)
+    return PlannerMethod("supergrasp-stage1", False, model=Stage1Order(), small_db=small_db, db=db, config=config,
+                         gripper=gripper)
+
+
 def _baseline_config(gripper=None):
     """The baselines' settings with the workspace-cropped Stage-2 scene cloud that labelling, training and
     SuperGrasp use (the networks score the point density they were trained on), for `gripper` (None:
@@ -193,6 +202,13 @@ METHODS: dict[str, MethodInfo] = {
             "SuperGrasp's planner (Stage 1, every addition) with PointNetGPD in place of E-RNet (network ablation)",
             _supergrasp_pointnetgpd,
             _PLANNER_OPTIONS,
+            _planner_missing,
+        ),
+        MethodInfo(
+            "supergrasp-stage1",
+            "SuperGrasp without Stage 2 (w/o E-RNet): the planner executes Stage 1's order, the best-matched first",
+            _supergrasp_stage1,
+            ("small_db", "db", "config", "gripper"),
             _planner_missing,
         ),
         MethodInfo("gpd", "GPD-style geometric baseline: antipodal sampling, ranked by an antipodal score", _gpd,

@@ -1,6 +1,6 @@
 """The report path: Table I on data no decision saw (`sgjax table-i`).
 
-Every method of the paper's Table I (and the network ablation `supergrasp-pointnetgpd`), three
+Every method of the paper's Table I (and the ablations `supergrasp-pointnetgpd` and `supergrasp-stage1`), three
 settings, N scenes each, on the first reserved seed of `envs.sealed`: seen-10 and seen-20 on the seen
 objects, and the unseen setting on the sealed objects ("unseen-sealed-10"). This module is the only
 caller of `run_benchmark(..., for_report=True)`; development runs use `sgjax declutter` on other seeds
@@ -25,6 +25,7 @@ METHODS = (
     "s1+pointnetgpd",
     "gpd+s2",
     "supergrasp-pointnetgpd",
+    "supergrasp-stage1",
     "supergrasp-norefine",
     "pointnetgpd",
     "supergrasp@paper",

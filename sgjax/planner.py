@@ -392,7 +392,7 @@ class Planner:
     def __init__(self, model=None, db: PrimitiveDB | None = None, config: PlannerConfig = PlannerConfig()):
         enable_compilation_cache()  # a new process loads what an earlier one compiled
         # PointNetGPD in E-RNet's place is the network ablation (`scorers`): it has no refinement head.
-        self.model = model if isinstance(model, pointnetgpd.PointNetGPD) else ernet.as_model(model)
+        self.model = model if isinstance(model, (pointnetgpd.PointNetGPD, scorers.Stage1Order)) else ernet.as_model(model)
         self.config = config
         self.checkpoint = checkpoint.checkpoint_name(model, checkpoint.ERNET_DEFAULT_DIR)
         self.checkpoint_gripper = checkpoint.model_gripper(model, checkpoint.ERNET_DEFAULT_DIR)

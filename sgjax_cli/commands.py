@@ -1219,7 +1219,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--method",
         required=True,
-        help="supergrasp | supergrasp-norefine | supergrasp-pointnetgpd | gpd | pointnetgpd | s1+pointnetgpd | gpd+s2 | "
+        help="supergrasp | supergrasp-norefine | supergrasp-pointnetgpd | supergrasp-stage1 | gpd | pointnetgpd | s1+pointnetgpd | "
+        "gpd+s2 | "
         "contact-graspnet | "
         "oracle-topdown (diagnostic, reads ground truth)",
     )

@@ -386,6 +386,30 @@ def test_planner_with_pointnetgpd_in_place_of_ernet(pointnetgpd_run, observation
     assert isinstance(method, PlannerMethod)
 
 
+@pytest.mark.slow  # Stage 1's compile (shared with the planner tests in a full run)
+def test_planner_without_stage2_executes_stage1_order(observation):
+    """`supergrasp-stage1` (w/o E-RNet): every candidate with scene points between its fingers scores 1, the
+    others 0, and the planner executes the first passing one in Stage 1's order."""
+    from sgjax.stage2 import crops
+
+    points, labels, view = observation
+    method = make_method("supergrasp-stage1", small_db=True)
+    plan = method.full_plan(points, labels, view, seed=7)
+    s = plan.scores
+    assert len(s["eval_prob"]) > 0 and not np.any(s["refine_prob"])
+    cands = [plan.candidates[o] for o in s["object"]]
+    poses = np.stack([c.poses[r] for c, r in zip(cands, s["object_candidate"])]).astype(np.float32)
+    widths = np.asarray([c.widths[r] for c, r in zip(cands, s["object_candidate"])], np.float32)
+    scene, mask = method.planner._scene(points, 7)
+    order = np.asarray(ernet.scene_order(len(scene), jax.random.key(7)))
+    count = np.asarray(crops.crop_closing_regions(scene[order], poses, widths, SPEC, 1, mask[order]).count)
+    np.testing.assert_array_equal(s["valid"], count > 0)
+    np.testing.assert_array_equal(s["eval_prob"], (count > 0).astype(np.float32))
+    first = int(np.flatnonzero(s["valid"])[0])
+    assert plan.kind == "evaluated" and plan.candidate_index == first
+    np.testing.assert_allclose(plan.pose, poses[first], atol=1e-5)
+
+
 # ---------------------------------------------------------------------------------------------
 # Contact-GraspNet.
 

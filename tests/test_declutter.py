@@ -442,7 +442,7 @@ def test_resume_key_covers_the_methods_own_settings(objects):
 
 
 def test_bad_input_is_reported_clearly(tmp_path, objects, capsys, monkeypatch):
-    with pytest.raises(UnknownMethod, match="expected one of supergrasp, supergrasp-norefine, supergrasp-pointnetgpd, gpd"):
+    with pytest.raises(UnknownMethod, match="expected one of supergrasp, supergrasp-norefine, supergrasp-pointnetgpd, supergrasp-stage1, gpd"):
         make_method("gdp")
     with monkeypatch.context() as m, pytest.raises(MethodUnavailable, match="not available yet"):
         m.delenv("SGJAX_CGN_PYTHON", raising=False)
