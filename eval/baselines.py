@@ -196,8 +196,7 @@ class Stage1Candidates:
             # The database of the config's gripper (the default one's ships; another's is built on first use).
             from sgjax.stage1.database import DBConfig, load_database
 
-            db_config = DBConfig.small() if small_db else DBConfig()
-            db = load_database(dataclasses.replace(db_config, spec=config.spec), progress=False)
+            db = load_database(DBConfig.for_gripper(config.spec, small_db), progress=False)
         self.config = config
         self.stage1 = Stage1(db, config.stage1)
 

@@ -21,7 +21,7 @@ import dataclasses
 import importlib.util
 from collections.abc import Callable
 
-from eval.protocol import Method, MethodUnavailable, split_preset
+from eval.protocol import Method, MethodUnavailable, check_gripper, split_preset
 
 __all__ = ["METHODS", "MethodInfo", "MethodUnavailable", "UnknownMethod", "check_method", "make_method", "method_gripper",
            "method_names", "takes_gripper", "uses_database"]
@@ -68,12 +68,7 @@ def _for_gripper(name: str, config, gripper, default: Callable):
     benchmark's simulated gripper and the method's are the same one (`eval.benchmark.run_benchmark`)."""
     if config is None:
         return default(gripper)
-    if gripper is not None and config.spec != gripper:
-        from sgjax.stage2.checkpoint import describe_gripper
-
-        raise ValueError(f"method {name!r}: its config plans for gripper {describe_gripper(config.spec, gripper)} but the "
-                         f"benchmark simulates gripper {describe_gripper(gripper, config.spec)} (DeclutterConfig.gripper): "
-                         "give a config with that spec, or none")
+    check_gripper(name, config.spec, gripper)
     return config
 
 
@@ -96,7 +91,6 @@ def _supergrasp(use_refinement: bool) -> Callable[..., Method]:
         from eval.supergrasp import PlannerMethod
 
         name = "supergrasp" if use_refinement else "supergrasp-norefine"
-        _for_gripper(name, config, gripper, lambda g: None)  # a given config plans for `gripper`
         return PlannerMethod(name, use_refinement, model=model, small_db=small_db, db=db, config=config, preset=preset,
                              gripper=gripper)
 
@@ -110,7 +104,6 @@ def _supergrasp_pointnetgpd(model=None, small_db: bool = False, db=None, config=
     from eval.supergrasp import PlannerMethod
     from sgjax.stage2 import checkpoint, pointnetgpd
 
-    _for_gripper("supergrasp-pointnetgpd", config, gripper, lambda g: None)
     method = PlannerMethod("supergrasp-pointnetgpd", False, model=pointnetgpd.as_model(model), small_db=small_db, db=db,
                            config=config, gripper=gripper)
     checkpoint.warn_gripper("PointNetGPD", model, checkpoint.POINTNETGPD_DEFAULT_DIR, method.config.spec)
@@ -121,7 +114,6 @@ def _supergrasp_stage1(small_db: bool = False, db=None, config=None, gripper=Non
     from eval.supergrasp import PlannerMethod
     from sgjax.stage2.scorers import Stage1Order
 
-    _for_gripper("supergrasp-stage1", config, gripper, lambda g: None)
     return PlannerMethod("supergrasp-stage1", False, model=Stage1Order(), small_db=small_db, db=db, config=config,
                          gripper=gripper)
 

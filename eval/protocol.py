@@ -80,5 +80,16 @@ def split_preset(name: str) -> tuple[str, str]:
     return base, (preset if at else "default")
 
 
+def check_gripper(name: str, planned, gripper) -> None:
+    """ValueError when method `name`'s config plans for gripper `planned` while it is asked to plan for
+    `gripper` (None: no gripper asked for): a method and the benchmark's simulated gripper are the same one."""
+    if gripper is not None and planned != gripper:
+        from sgjax.stage2.checkpoint import describe_gripper
+
+        raise ValueError(f"method {name!r}: its config plans for gripper {describe_gripper(planned, gripper)} but the "
+                         f"benchmark simulates gripper {describe_gripper(gripper, planned)} (DeclutterConfig.gripper): "
+                         "give a config with that spec, or none")
+
+
 class MethodUnavailable(RuntimeError):
     """The method is registered but cannot run here (not installed, or not written yet)."""

@@ -20,7 +20,7 @@ import dataclasses
 
 import numpy as np
 
-from eval.protocol import Decision, with_preset
+from eval.protocol import Decision, check_gripper, with_preset
 from sgjax.geometry.pointcloud import table_plane
 from sgjax.stage1.memory import Stage1Memory
 
@@ -42,18 +42,14 @@ class PlannerMethod:
             config = presets.get(preset, gripper=gripper, scene_cloud=stage2_scene_cloud())
         elif preset != "default":
             raise ValueError("give a planner preset or a config, not both")
-        elif gripper is not None and config.spec != gripper:
-            from sgjax.stage2.checkpoint import describe_gripper
-
-            raise ValueError(f"{name}: the config plans for gripper {describe_gripper(config.spec, gripper)}, not for "
-                             f"`gripper` {describe_gripper(gripper, config.spec)}")
+        else:
+            check_gripper(name, config.spec, gripper)  # as every method of the registry (`eval.methods`)
         if db is None and (small_db or config.spec != GripperSpec()):
             # The database of the planner's gripper (the default one's ships; another's is built into the
             # cache on first use).
             from sgjax.stage1.database import DBConfig, load_database
 
-            db_config = DBConfig.small() if small_db else DBConfig()
-            db = load_database(dataclasses.replace(db_config, spec=config.spec), progress=False)
+            db = load_database(DBConfig.for_gripper(config.spec, small_db), progress=False)
         self.config = dataclasses.replace(config, use_refinement=use_refinement)
         self.name = with_preset(name, preset)
         self.planner = Planner(model=model, db=db, config=self.config)

@@ -399,7 +399,7 @@ class Planner:
         network = "E-RNet" if isinstance(self.model, ernet.ERNet) else type(self.model).__name__
         mismatch = checkpoint.gripper_mismatch(network, self.checkpoint, self.checkpoint_gripper, config.spec)
         if mismatch is not None:
-            warnings.warn(mismatch, stacklevel=2)
+            warnings.warn(mismatch, checkpoint.GripperMismatchWarning, stacklevel=2)
         self._scorer = scorers.scorer_for(self.model)
         if not scorers.has_refinement(self.model):
             if config.use_refinement:

@@ -59,15 +59,6 @@ def _gripper(args: argparse.Namespace):
         raise ValueError(f"--gripper: {exc}") from None
 
 
-def _db_config(spec, small: bool = False):
-    """The primitive database's config for gripper `spec` (the small grid with --small-db)."""
-    import dataclasses
-
-    from sgjax.stage1.database import DBConfig
-
-    return dataclasses.replace(DBConfig.small() if small else DBConfig(), spec=spec)
-
-
 def _database_ready(cfg) -> bool:
     from sgjax.stage1.database import default_path, shipped_path
 
@@ -92,9 +83,9 @@ def _note_database(cfg, small: bool = False) -> None:
 def _prepare_database(spec, small: bool = False) -> None:
     """Build the database of gripper `spec` into the cache if it is not there (with the note), so that
     what loads it later (a benchmark method, labelling) finds it."""
-    from sgjax.stage1.database import build_database, default_path, save_database
+    from sgjax.stage1.database import DBConfig, build_database, default_path, save_database
 
-    cfg = _db_config(spec, small)
+    cfg = DBConfig.for_gripper(spec, small)
     if not _database_ready(cfg):
         _note_database(cfg, small)
         save_database(build_database(cfg, progress=False), default_path(cfg))
@@ -106,7 +97,7 @@ def _database(spec, small: bool = False, path: str | None = None, check: bool = 
     first when missing (with the note)."""
     import dataclasses
 
-    from sgjax.stage1.database import load_database, load_database_file
+    from sgjax.stage1.database import DBConfig, load_database, load_database_file
 
     if path:
         db = load_database_file(path)
@@ -115,28 +106,30 @@ def _database(spec, small: bool = False, path: str | None = None, check: bool = 
             raise ValueError(f"--db {path} was built for another gripper ({built_for}) than --gripper's: "
                              "build one with `sgjax build-db --gripper ...` or leave --db out")
         return db
-    cfg = _db_config(spec, small)
+    cfg = DBConfig.for_gripper(spec, small)
     _note_database(cfg, small)
     return load_database(cfg)
 
 
 class _warnings_as_notes:
     """Within it, the warning about a network checkpoint trained for another gripper than the one planned
-    for (`sgjax.stage2.checkpoint.gripper_mismatch`) prints as one line, "sgjax: warning: ...", on
+    for (`sgjax.stage2.checkpoint.GripperMismatchWarning`) prints as one line, "sgjax: warning: ...", on
     stderr; other warnings print as Python prints them."""
 
     def __enter__(self):
         import warnings
 
+        from sgjax.stage2.checkpoint import GripperMismatchWarning
+
         self._catch = warnings.catch_warnings()
         self._catch.__enter__()
         shown = warnings.showwarning
 
-        def show(message, *rest, **options):
-            if "was trained for gripper" in str(message):
+        def show(message, category, *rest, **options):
+            if issubclass(category, GripperMismatchWarning):
                 print(f"sgjax: warning: {message}", file=sys.stderr)
             else:
-                shown(message, *rest, **options)
+                shown(message, category, *rest, **options)
 
         warnings.showwarning = show
         return self
@@ -461,6 +454,7 @@ def _scene_range(scenes: str, first_scene: int | None) -> tuple[int, int]:
 
 def _cmd_label(args: argparse.Namespace) -> int:
     from sgjax.geometry.gripper import GripperSpec
+    from sgjax.stage1.database import DBConfig
     from sgjax.stage1.pipeline import Stage1
     from train import label
     from train.label_ray import WorkerFailures  # imports no ray: that waits for --ray
@@ -488,7 +482,7 @@ def _cmd_label(args: argparse.Namespace) -> int:
             from train.label_ray import label_ray
 
             run = label_ray(
-                args.out, n_scenes, config, db=_db_config(spec, args.small_db), address=args.ray or None,
+                args.out, n_scenes, config, db=DBConfig.for_gripper(spec, args.small_db), address=args.ray or None,
                 workers=args.workers, threads=args.threads or 1, backend=args.backend, first_scene=first_scene,
                 progress=not args.quiet,
             )
@@ -529,7 +523,7 @@ def _cmd_build_db(args: argparse.Namespace) -> int:
         return _fail(str(exc))
     if args.ship and args.gripper is not None and spec != DBConfig().spec:
         return _fail("--ship: only the default gripper's database ships (others are built into the cache on first use)")
-    cfg = _db_config(spec, args.small)
+    cfg = DBConfig.for_gripper(spec, args.small)
     path = args.out or default_path(cfg)
     if os.path.isfile(path) and not args.force:
         db = load_database_file(path)

@@ -352,7 +352,7 @@ class Labellers:
         if stage1 is None:  # the database of the config's gripper (the shipped one for the default gripper)
             from sgjax.stage1.database import DBConfig, load_database
 
-            stage1 = Stage1(load_database(DBConfig(spec=config.spec)), config.stage1)
+            stage1 = Stage1(load_database(DBConfig.for_gripper(config.spec)), config.stage1)
         if stage1.config != config.stage1:
             raise ValueError("stage1.config differs from config.stage1")
         return cls(stage1, Stage1(stage1.db, sources.paper_filters(config.stage1)))

@@ -77,6 +77,12 @@ class DBConfig:
             frustum_aspects=(0.8, 2.0),
         )
 
+    @classmethod
+    def for_gripper(cls, spec: GripperSpec, small: bool = False) -> DBConfig:
+        """The full grid (or `small`'s) for gripper `spec`: its templates and widths are that gripper's, and
+        so is the cache key (the default gripper's database ships; another's is built on first use)."""
+        return dataclasses.replace(cls.small() if small else cls(), spec=spec)
+
     def key(self) -> str:
         """A short hash of everything that changes the database's content."""
         text = json.dumps([FORMAT_VERSION, BUILD_VERSION, dataclasses.asdict(self)], sort_keys=True, default=str)

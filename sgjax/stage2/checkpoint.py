@@ -214,6 +214,10 @@ def _number(value) -> str:
     return f"{value:g}"
 
 
+class GripperMismatchWarning(UserWarning):
+    """A network checkpoint plans for another gripper than the one it was trained for (`gripper_mismatch`)."""
+
+
 def gripper_mismatch(network: str, checkpoint: str, trained: GripperSpec | None, spec: GripperSpec) -> str | None:
     """The warning for a network checkpoint trained for gripper `trained` that plans for gripper `spec`;
     None when they agree or the checkpoint's gripper is unknown (a model in memory)."""
@@ -230,5 +234,5 @@ def warn_gripper(network: str, model, default_dir: Path, spec: GripperSpec, stac
     returns the message (None: no warning)."""
     message = gripper_mismatch(network, checkpoint_name(model, default_dir), model_gripper(model, default_dir), spec)
     if message is not None:
-        warnings.warn(message, stacklevel=stacklevel)
+        warnings.warn(message, GripperMismatchWarning, stacklevel=stacklevel)
     return message
