@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 from sgjax.stage1.database import DBConfig, default_path, save_database
-from sgjax.stage2 import ernet, pointnetgpd
+from sgjax.stage2 import checkpoint, ernet, pointnetgpd
 from sgjax_cli import main
 from train import label
 from train import recipe as recipes
@@ -255,3 +255,30 @@ def test_ship_lines_copy_the_last_epoch_without_optimiser_state(tiny_runs):
     lines = recipes.ship_lines(first.run_dir, "ernet_default")
     assert any(f"cp -r {first.checkpoint} " in line for line in lines)
     assert any(line.startswith("rm -rf ") and line.endswith("/checkpoints/1/opt_state") for line in lines)
+
+
+# The shipped checkpoints rebuilt from their recipes (pointnetgpd_default joins when its rebuild ships).
+REBUILT = ["ernet_default"]
+
+
+@pytest.mark.parametrize("name", REBUILT)
+def test_a_shipped_checkpoint_is_its_recipes_product(name):
+    """A shipped checkpoint records the recipe file as it is in the repository today (same bytes), the
+    full training it asks for, and a clean commit of this repository: so `sgjax train --recipe NAME`
+    rebuilds it from the code it names."""
+    recipe = recipes.load_recipe(name)
+    model, meta = LOADERS[recipe.network](checkpoint.MODELS_DIR / name)
+    recorded = dict(meta["recipe"])
+    assert Path(recorded.pop("path")).parts[-3:] == ("train", "recipes", f"{name}.toml")  # the checkout it ran in
+    expected = json.loads(json.dumps({**recipe.to_dict(), "tiny": False}))
+    expected.pop("path", None)
+    assert recorded == expected
+    assert meta["recipe"]["sha256"] == hashlib.sha256(recipes.recipe_path(name).read_bytes()).hexdigest()
+    assert meta["epochs_done"] == recipe.train.epochs and model.config == recipe.train.config(recipe.network).model
+    assert re.fullmatch(r"[0-9a-f]{40}", meta["commit"]["sha"]) and meta["commit"]["dirty"] is False
+    known = subprocess.run(["git", "-C", str(REPO), "cat-file", "-e", meta["commit"]["sha"] + "^{commit}"],
+                           capture_output=True, check=False)
+    inside = subprocess.run(["git", "-C", str(REPO), "rev-parse", "--is-shallow-repository"],
+                            capture_output=True, text=True, check=False)
+    if inside.returncode == 0 and inside.stdout.strip() == "false":  # a full clone holds the commit
+        assert known.returncode == 0, f"{name} was trained at {meta['commit']['sha']}, not a commit of this repository"
