@@ -39,7 +39,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 import time
-import warnings
 from typing import Any, ClassVar
 
 import jax
@@ -383,9 +382,9 @@ class Planner:
     db: a PrimitiveDB, or None (the default database from the cache, built on first use);
     config: a `PlannerConfig` (named ones: `sgjax.presets`).
 
-    `checkpoint` names the network's checkpoint ("sgjax/models/ernet_default", the run directory, or "an
-    in-memory model") and `checkpoint_gripper` the gripper it was trained for (its meta's record; None for
-    a model in memory). When that differs from the gripper the planner plans for (`config.spec`), the
+    `checkpoint` names the network's checkpoint ("sgjax/models/ernet_default", the run directory, "an
+    in-memory model", or for `scorers.Stage1Order` "none (Stage 1's order)") and `checkpoint_gripper` the
+    gripper it was trained for (its meta's record; None for a model in memory or no network). When that differs from the gripper the planner plans for (`config.spec`), the
     planner warns once, when it is built (`checkpoint.gripper_mismatch`).
     """
 
@@ -394,12 +393,13 @@ class Planner:
         # PointNetGPD in E-RNet's place is the network ablation (`scorers`): it has no refinement head.
         self.model = model if isinstance(model, (pointnetgpd.PointNetGPD, scorers.Stage1Order)) else ernet.as_model(model)
         self.config = config
-        self.checkpoint = checkpoint.checkpoint_name(model, checkpoint.ERNET_DEFAULT_DIR)
-        self.checkpoint_gripper = checkpoint.model_gripper(model, checkpoint.ERNET_DEFAULT_DIR)
-        network = "E-RNet" if isinstance(self.model, ernet.ERNet) else type(self.model).__name__
-        mismatch = checkpoint.gripper_mismatch(network, self.checkpoint, self.checkpoint_gripper, config.spec)
-        if mismatch is not None:
-            warnings.warn(mismatch, checkpoint.GripperMismatchWarning, stacklevel=2)
+        if isinstance(self.model, scorers.Stage1Order):  # no network, so no checkpoint and no gripper to check
+            self.checkpoint, self.checkpoint_gripper = scorers.STAGE1_ORDER, None
+        else:
+            self.checkpoint = checkpoint.checkpoint_name(model, checkpoint.ERNET_DEFAULT_DIR)
+            self.checkpoint_gripper = checkpoint.model_gripper(model, checkpoint.ERNET_DEFAULT_DIR)
+            network = "E-RNet" if isinstance(self.model, ernet.ERNet) else type(self.model).__name__
+            checkpoint.warn_gripper(network, model, checkpoint.ERNET_DEFAULT_DIR, config.spec)
         self._scorer = scorers.scorer_for(self.model)
         if not scorers.has_refinement(self.model):
             if config.use_refinement:

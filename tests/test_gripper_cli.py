@@ -270,6 +270,10 @@ def test_the_planner_names_its_checkpoint_and_warns_for_another_gripper(trained,
         model = ERNet(ERNetConfig.tiny(), rngs=nnx.Rngs(0))
         planner = Planner(model, small_db, presets.get("default", gripper=load_gripper(ROBOTIQ)))
         assert planner.checkpoint == "an in-memory model" and planner.checkpoint_gripper is None
+        from sgjax.stage2.scorers import Stage1Order
+        planner = Planner(Stage1Order(), small_db, dataclasses.replace(presets.get("default", gripper=load_gripper(ROBOTIQ)),
+                                                                       use_refinement=False))
+        assert planner.checkpoint == "none (Stage 1's order)" and planner.checkpoint_gripper is None
     assert not [w for w in caught if "trained for gripper" in str(w.message)]
     with pytest.warns(UserWarning, match="was trained for gripper default"):
         Planner(None, small_db, presets.get("default", gripper=MINE))

@@ -36,6 +36,9 @@ def pointnetgpd_score(graphdef: nnx.GraphDef, state: nnx.State, scene: jax.Array
     return ernet.ERNetScores(s.prob, jnp.zeros((s.prob.shape[0], spec.num_refinements), s.prob.dtype), s.valid, s.count)
 
 
+STAGE1_ORDER = "none (Stage 1's order)"  # what the planner names as its checkpoint with `Stage1Order`
+
+
 class Stage1Order(nnx.Module):
     """No Stage-2 network: a stand-in without parameters that the planner holds in the network's place."""
 
