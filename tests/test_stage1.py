@@ -231,6 +231,19 @@ def test_scene_test_runs_on_the_first_scene_slots_candidates_that_passed_the_oth
         "collision_scene": 2, "scene_untested": 2, "kept": 1,
     }
     assert np.asarray(run(5).keep).tolist() == np.asarray(every.keep).tolist()  # all 5 fit: the same as None
+    # Windows: when every candidate of a window collides, the next window is tested, until one is clear.
+    two = run(2)  # rows 0, 2 collide; then rows 3 (clear), 4: row 5 is left untested
+    assert np.asarray(two.collision_scene).tolist() == [True, False, True, False, True, False]
+    assert np.asarray(two.scene_untested).tolist() == [False] * 5 + [True]
+    assert np.asarray(two.keep).tolist() == [False, False, False, True, False, False]
+    one = run(1)  # rows 0, 2 collide one at a time; row 3 is clear: 4 and 5 untested
+    assert np.asarray(one.collision_scene).tolist() == [True, False, True, False, False, False]
+    assert np.asarray(one.scene_untested).tolist() == [False] * 4 + [True, True]
+    blocked = coarse_filter(jnp.asarray(np.stack([good] * 5), jnp.float32), jnp.full(5, 0.06, jnp.float32), jnp.ones(5, bool),
+                            jnp.asarray(cloud), jnp.asarray(mask), normals, jnp.asarray(neighbour),
+                            jnp.ones(len(neighbour), bool), cfg=FilterConfig(scene_slots=2))
+    # None clear: every window tested (3 windows, the last half padding), nothing left untested.
+    assert np.asarray(blocked.collision_scene).all() and not np.asarray(blocked.scene_untested).any()
     with pytest.raises(ValueError, match="scene_slots"):
         FilterConfig(scene_slots=0)
 
@@ -686,9 +699,14 @@ def test_chunked_is_batch_over_chunks_and_obstacles_need_no_shape(stage):
         stage.batch([box], [np.r_[table, [[np.nan, 0, 0]]]])
 
 
-def test_rescene_is_filter_iv_again_on_what_reached_it(stage):
+@pytest.mark.parametrize("slots", [None, 8])
+def test_rescene_is_filter_iv_again_on_what_reached_it(stage, slots):
     """`rescene` on a result computed with some obstacles (or none) gives what `chunked` gives with the
-    new obstacles, without Stage 1's other steps: the same candidates, counts and reasons."""
+    new obstacles, without Stage 1's other steps: the same candidates, counts and reasons (with (iv)'s
+    default windows, and with windows of 8, where several windows are tested and some left untested)."""
+    if slots is not None:
+        cfg = dataclasses.replace(stage.config, filter=dataclasses.replace(stage.config.filter, scene_slots=slots))
+        stage = Stage1(stage.db, cfg, share=stage)
     box, _ = single_view(Primitive("cuboid", (0.09, 0.054, 0.027)))
     can, _ = single_view(Primitive("cylinder", (0.045, 0.045, 0.1)))
     centre = box.mean(0)
@@ -698,6 +716,7 @@ def test_rescene_is_filter_iv_again_on_what_reached_it(stage):
     cage = cage[np.min(np.linalg.norm(cage[:, None] - box[None], axis=-1), 1) > 0.01]  # all round, not on it
     objects, nothing = [box, can, box], np.zeros((0, 3))
     before = stage.chunked(objects, [nothing, wall, nothing], CAMERA, seed=2, sizes=(2,))
+    wants = []
     for after in ([wall, nothing, cage], [nothing, nothing, nothing]):
         want = stage.chunked(objects, after, CAMERA, seed=2, sizes=(2,))
         got = stage.rescene(before, objects, after, CAMERA, seed=2, sizes=(2,))
@@ -705,6 +724,9 @@ def test_rescene_is_filter_iv_again_on_what_reached_it(stage):
             assert g.counts == w.counts and g.reason == w.reason
             np.testing.assert_array_equal(g.template_id, w.template_id)
             np.testing.assert_allclose(g.poses, w.poses, atol=1e-6)
+        wants += want
+    if slots is not None:  # the case it is for: several windows tested (the cage), some candidates left untested
+        assert max(w.counts["collision_scene"] for w in wants) > slots and any(w.counts["scene_untested"] for w in wants)
     assert want[0].counts["collision_scene"] == 0 and len(want[0]) == len(before[0])
     blocked = stage.rescene(before, objects, [wall, nothing, cage], CAMERA, seed=2, sizes=(2,))
     assert 0 < blocked[0].counts["collision_scene"] and len(blocked[2]) == 0 and "collide with the scene" in blocked[2].reason

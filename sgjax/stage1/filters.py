@@ -76,9 +76,8 @@ class FilterConfig:
     line_samples: int = 32  # "superquadric": samples along the closing line before bisection
     # (iv) tests every obstacle point (and its shadow) against every hand box along the approach: the
     # costliest test by far (seen-10 under load: Stage 1 took 3.4 s with it, 1.2 s without). It runs on
-    # at most this many candidates, those that passed (i)-(iii) and (v), in match order; any further
-    # ones are removed untested ("scene_untested"). On a seen-10 scene no object had more than 230 such
-    # candidates. None: test them all.
+    # the candidates that passed (i)-(iii) and (v) this many at a time, in match order, until a window
+    # leaves one clear; those beyond are removed untested ("scene_untested"). None: all in one window.
     scene_slots: int | None = 256
     # The candidate x point tests run over this many candidates at a time (`map_chunks`): the same
     # tests, but [chunk, N] intermediates stay in cache where [M, N] ones stream through memory once
@@ -167,8 +166,8 @@ def estimate_normals(
 @dataclasses.dataclass
 class FilterResult:
     """Per candidate [M]: keep, and which tests failed: (i)-(iii) and (v) each on its own, (iv)
-    (`collision_scene`) only on candidates that passed them, `scene_untested` those beyond its
-    `FilterConfig.scene_slots`."""
+    (`collision_scene`) only on candidates that passed them, `scene_untested` those beyond the windows of
+    `FilterConfig.scene_slots` that (iv) tested (`windowed_scene_test`)."""
 
     keep: jax.Array
     collision_object: jax.Array
@@ -282,7 +281,7 @@ def coarse_filter(
     each obstacle point hides (`sgjax.geometry.gripper.segment_regions`).
     skip_normal: bool [M] or None: candidates that (iii) does not judge (e.g. the grasps on the fit
         itself, `FitGraspConfig.normal_test`); their normal_angle is False.
-    (iv) runs last, on at most `cfg.scene_slots` of the candidates that passed the other tests.
+    (iv) runs last, on the candidates that passed the other tests, `cfg.scene_slots` at a time (`windowed_scene_test`).
     """
     skip = jnp.zeros_like(valid, bool) if skip_normal is None else jnp.asarray(skip_normal, bool)
 
@@ -313,22 +312,51 @@ def scene_filter(result: FilterResult, poses, widths, scene_points, scene_mask, 
                  cfg: FilterConfig = FilterConfig(), viewpoint=None) -> FilterResult:
     """Filter (iv) on a `coarse_filter` result computed without a scene: poses [M, 4, 4], widths [M] (as
     filtered), scene_points [S, 3], scene_mask [S], viewpoint [3] or None -> the result with the scene."""
-    collision_scene, untested = _scene_test(poses, widths, result.keep, scene_points, scene_mask, spec, cfg, viewpoint)
+    collision_scene, untested = windowed_scene_test(poses, widths, result.keep, scene_points, scene_mask, spec, cfg, viewpoint)
     return dataclasses.replace(result, keep=result.keep & ~collision_scene & ~untested, collision_scene=collision_scene,
                                scene_untested=untested)
 
 
-def _scene_test(poses, widths, passed, scene_points, scene_mask, spec: GripperSpec, cfg: FilterConfig, viewpoint):
-    """Filter (iv) on the first `cfg.scene_slots` candidates that passed the other tests: poses [M, 4, 4],
-    widths [M], passed bool[M], scene_points [S, 3], scene_mask [S], viewpoint [3] or None ->
-    (collision bool[M], untested bool[M]: passed but beyond the slots)."""
+def windowed_scene_test(poses, widths, passed, scene_points, scene_mask, spec: GripperSpec, cfg: FilterConfig, viewpoint):
+    """Filter (iv) on the candidates that passed the other tests, `cfg.scene_slots` at a time in match
+    order, until a window leaves one clear or none is left: poses [M, 4, 4], widths [M], passed bool[M],
+    scene_points [S, 3], scene_mask [S], viewpoint [3] or None -> (collision bool[M], untested bool[M]:
+    passed but beyond the windows tested).
+
+    Why windows: (iv) costs the most, so it stops at the first window with a clear candidate (the
+    planner's choice among more is worth less than the time); but an object whose first window all
+    collides (a large hand in clutter) would otherwise lose every further candidate untested. A
+    `lax.while_loop`: under `lax.map` an object pays only for the windows it needs."""
     m = poses.shape[0]
     slots = m if cfg.scene_slots is None else min(cfg.scene_slots, m)
-    order = jnp.argsort(~passed, stable=True)[:slots]  # passed first, in match order
-    hit = scene_collisions(poses[order], widths[order], passed[order], scene_points, scene_mask, spec, cfg, viewpoint)
-    tested = jnp.zeros(m, bool).at[order].set(passed[order])
-    collision = jnp.zeros(m, bool).at[order].set(hit & passed[order])
-    return collision, passed & ~tested
+    windows = -(-m // slots)
+    total = windows * slots
+    order = jnp.argsort(~passed, stable=True)  # passed first, in match order
+    order = jnp.concatenate([order, jnp.zeros(total - m, order.dtype)])  # padding rows: inactive copies of 0
+    active = jnp.concatenate([passed[order[:m]], jnp.zeros(total - m, bool)])
+    p_sorted, w_sorted = poses[order], widths[order]
+
+    def window(k):
+        start = k * slots
+        take = lambda x: jax.lax.dynamic_slice_in_dim(x, start, slots)
+        return scene_collisions(take(p_sorted), take(w_sorted), take(active), scene_points, scene_mask, spec, cfg,
+                                viewpoint)
+
+    def more(state):
+        k, hit, tested = state
+        clear = jnp.any(tested & ~hit)
+        return (k < windows) & ~clear & active[jnp.minimum(k * slots, total - 1)]
+
+    def step(state):
+        k, hit, tested = state
+        hit = jax.lax.dynamic_update_slice_in_dim(hit, window(k), k * slots, 0)
+        in_window = (jnp.arange(total) >= k * slots) & (jnp.arange(total) < (k + 1) * slots)
+        return k + 1, hit, tested | (in_window & active)
+
+    _, hit, tested = jax.lax.while_loop(more, step, (0, jnp.zeros(total, bool), jnp.zeros(total, bool)))
+    collision = jnp.zeros(m, bool).at[order[:m]].set(hit[:m] & tested[:m])
+    tested_m = jnp.zeros(m, bool).at[order[:m]].set(tested[:m])
+    return collision, passed & ~tested_m
 
 
 def scene_collisions(poses, widths, active, scene_points, scene_mask, spec: GripperSpec = GripperSpec(),

@@ -33,8 +33,8 @@ from sgjax.stage1.filters import (
     map_chunks,
     pose_collisions,
     removal_counts,
-    scene_collisions,
     scene_filter,
+    windowed_scene_test,
 )
 from sgjax.stage1.ems import EMSConfig, FitResult, _fit_one
 from sgjax.stage1.fit_grasps import FitGraspConfig, fit_top_down_grasps
@@ -408,7 +408,7 @@ class Stage1:
             raise ValueError(f"got {len(previous)} previous results, {len(objects)} object and {len(scenes)} scene clouds")
         if any(p.before_scene is None for p in previous):
             raise ValueError("rescene needs results of Stage1.batch / chunked (Candidates.before_scene)")
-        slots = cfg.max_candidates if cfg.filter.scene_slots is None else min(cfg.filter.scene_slots, cfg.max_candidates)
+        slots = cfg.max_candidates  # every candidate that passed (i)-(iii) and (v); (iv) takes them in windows
         has_view = viewpoint is not None
         view = np.asarray(viewpoint if has_view else np.zeros(3), np.float32).reshape(3)
         out: list[Candidates] = []
@@ -418,25 +418,26 @@ class Stage1:
             active = np.zeros((size, slots), bool)
             for i in range(count):
                 before = previous[begin + i].before_scene
-                k = min(len(before["widths"]), slots)  # more only from a run without obstacles
-                poses[i, :k], widths[i, :k], active[i, :k] = before["poses"][:k], before["widths"][:k], True
+                k = len(before["widths"])
+                poses[i, :k], widths[i, :k], active[i, :k] = before["poses"], before["widths"], True
             clouds = [pointcloud.as_cloud(o, f"object cloud {i}") for i, o in enumerate(objects[begin : begin + count])]
             scene, scene_mask = self._crops(scenes[begin : begin + count], clouds, seed + begin, _planes(support_plane, size),
                                             size)
             hit = exported.call("stage1_rescene", functools.partial(_rescene, cfg=cfg, has_view=has_view),
                                 (poses, widths, active, scene, scene_mask, np.tile(view, (size, 1))),
                                 (cfg.spec, cfg.filter, has_view))
-            hit = np.asarray(hit)
+            hit, untested = (np.asarray(x) for x in hit)
             for i in range(count):
                 prev = previous[begin + i]
                 reached = len(prev.before_scene["widths"])
-                collided = hit[i, : min(reached, slots)]
-                counts = dict(prev.counts, collision_scene=int(collided.sum()), kept=int(len(collided) - collided.sum()),
-                              scene_untested=prev.counts.get("scene_untested", 0) + max(0, reached - slots))
+                collided, skipped = hit[i, :reached], untested[i, :reached]
+                clear = ~collided & ~skipped
+                counts = dict(prev.counts, collision_scene=int(collided.sum()), kept=int(clear.sum()),
+                              scene_untested=int(skipped.sum()))
                 if not counts["kept"]:
                     out.append(_empty(counts, _reason(counts, cfg), prev.superquadric, prev.before_scene))
                 else:
-                    out.append(_selected(prev.before_scene, np.flatnonzero(~collided), prev.superquadric, counts,
+                    out.append(_selected(prev.before_scene, np.flatnonzero(clear), prev.superquadric, counts,
                                          prev.before_scene))
         return out
 
@@ -499,7 +500,8 @@ class Stage1:
         arrays = {name: out[name][i] for name in ("poses", "widths", "primitive_id", "template_id", "match_rank",
                                                    "match_score")}
         arrays["points_between"] = filt.points_between
-        reached = np.flatnonzero(filt.keep | filt.collision_scene)  # in match order, as (iv) tested them
+        # Every candidate that reached (iv), tested or not, in match order: `rescene` runs (iv)'s windows again.
+        reached = np.flatnonzero(filt.keep | filt.collision_scene | filt.scene_untested)
         before_scene = {name: value[reached] for name, value in arrays.items()}
         if not filt.keep.any():
             return _empty(counts, _reason(counts, self.config), fit, before_scene)
@@ -528,12 +530,13 @@ def _chunks(n: int, sizes) -> list[tuple[int, int, int]]:
 
 
 def _rescene(poses, widths, active, scene, scene_mask, viewpoint, cfg: Stage1Config, has_view: bool):
-    """Filter (iv) over B objects' candidates: poses [B, T, 4, 4], widths [B, T], active [B, T], scene [B, S, 3],
-    scene_mask [B, S], viewpoint [B, 3] -> collision bool [B, T]. Object by object (`lax.map`), so that
-    the chunks of inactive slots are skipped."""
+    """Filter (iv) over B objects' candidates as Stage 1 runs it (`windowed_scene_test`): poses [B, T, 4, 4],
+    widths [B, T], active [B, T] (the candidates that reached (iv), first), scene [B, S, 3], scene_mask
+    [B, S], viewpoint [B, 3] -> (collision bool [B, T], untested bool [B, T]). Object by object
+    (`lax.map`), so that each pays only for the windows it needs."""
     def one(args):
         p, w, a, s, sm, v = args
-        return scene_collisions(p, w, a, s, sm, cfg.spec, cfg.filter, v if has_view else None)
+        return windowed_scene_test(p, w, a, s, sm, cfg.spec, cfg.filter, v if has_view else None)
 
     return jax.lax.map(one, (poses, widths, active, scene, scene_mask, viewpoint))
 
