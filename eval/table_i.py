@@ -8,17 +8,25 @@ caller of `run_benchmark(..., for_report=True)`; development runs use `sgjax dec
 
 Rows run one method after another in `METHODS` order (the methods the README compares first) so that
 an interrupted report has whole rows; each run resumes from its logs. A method that cannot run here
-(contact-graspnet without its environment) is skipped and named.
+(contact-graspnet without its environment) is skipped and named. Each invocation's code commit and
+shipped checkpoints are kept in DIR/provenance.json (`record_provenance`), so a report names what made it.
 """
 
 from __future__ import annotations
 
+import datetime
+import json
 import os
 from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
 
 from envs import sealed
 from eval.benchmark import BenchmarkResult, run_benchmark
 from eval.methods import MethodUnavailable, check_method
+from sgjax.stage2 import checkpoint
+from sgjax.utils.files import atomic_write_text
+from sgjax.utils.provenance import code_commit
 
 METHODS = (
     "supergrasp",
@@ -35,6 +43,40 @@ METHODS = (
 # (setting, object set replacing the setting's own: the unseen setting reports on the sealed objects)
 SETTINGS = (("seen-10", None), ("seen-20", None), ("unseen-10", sealed.SEALED_OBJECT_SET))
 SEED = sealed.RESERVED_SEEDS[0]
+PROVENANCE = "provenance.json"  # in the report's directory: what each invocation ran with
+NETWORKS = {"ernet_default": checkpoint.ERNET_DEFAULT_DIR, "pointnetgpd_default": checkpoint.POINTNETGPD_DEFAULT_DIR}
+
+
+def provenance() -> dict[str, Any]:
+    """What the report runs with now: {"commit": `code_commit()`, "checkpoints": {name: {"recipe_sha256",
+    "trained_at"}}} for each shipped network (None where its meta records no recipe or commit)."""
+    nets = {}
+    for name, directory in NETWORKS.items():
+        meta = checkpoint.read_meta(directory)
+        nets[name] = {"recipe_sha256": (meta.get("recipe") or {}).get("sha256"),
+                      "trained_at": (meta.get("commit") or {}).get("sha")}
+    return {"commit": code_commit(), "checkpoints": nets}
+
+
+def record_provenance(out: str | os.PathLike, say: Callable[[str], None] = print) -> list[dict[str, Any]]:
+    """Append this invocation's `provenance()` to `out`/provenance.json when it differs from the last
+    entry's (a resumed report at the same code adds nothing) -> every entry. Says which code it runs and
+    warns when the report's runs come from more than one code or checkpoint state, or from uncommitted
+    code: a report is as reproducible as the commits its directory names."""
+    path = Path(out) / PROVENANCE
+    entries = json.loads(path.read_text()) if path.exists() else []
+    now = provenance()
+    if not entries or {k: entries[-1][k] for k in now} != now:
+        started = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
+        entries.append({**now, "started": started})
+        path.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(path, json.dumps(entries, indent=1) + "\n")
+    sha, dirty = now["commit"]["sha"], now["commit"]["dirty"]
+    say(f"code {sha}" + (" with uncommitted changes: the report cannot name the code it ran" if dirty else ""))
+    states = {json.dumps({k: e[k] for k in now}, sort_keys=True) for e in entries}
+    if len(states) > 1:
+        say(f"note: this report's runs come from {len(states)} code or checkpoint states ({path})")
+    return entries
 
 
 def run_table_i(
@@ -54,6 +96,8 @@ def run_table_i(
         except MethodUnavailable as exc:
             skipped.append(f"{method}: {exc}")
             say(f"skipped {method}: {exc}")
+    if runnable:
+        record_provenance(out, say)
     for method in runnable:
         for setting, objects in SETTINGS:
             result = run_benchmark(method, setting=setting, scenes=scenes, seed=SEED, out=out, objects=objects,

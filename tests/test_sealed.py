@@ -140,3 +140,27 @@ def test_the_report_command_names_an_unknown_method_before_any_work(tmp_path, ca
     assert main(["table-i", "--out", str(tmp_path / "report"), "--methods", "supergrasp,no-such-method"]) == 2
     assert "unknown method 'no-such-method'" in capsys.readouterr().err
     assert not (tmp_path / "report").exists()
+
+
+def test_the_report_records_the_code_and_checkpoints_it_ran_with(tmp_path):
+    import json
+
+    from eval import table_i
+    from sgjax.utils.provenance import code_commit
+    from train import recipe
+
+    said = []
+    first = table_i.record_provenance(tmp_path, said.append)
+    assert len(first) == 1 and first[0]["commit"] == code_commit()
+    assert said[0].startswith(f"code {code_commit()['sha']}")
+    ernet = first[0]["checkpoints"]["ernet_default"]  # the shipped E-RNet: its recipe, as the file is today
+    assert ernet["recipe_sha256"] == recipe.load_recipe("ernet_default").sha256 and len(ernet["trained_at"]) == 40
+    assert table_i.record_provenance(tmp_path, said.append) == first  # resumed at the same code: nothing added
+    path = tmp_path / table_i.PROVENANCE
+    older = json.loads(path.read_text())
+    older[0]["commit"] = {"sha": "0" * 40, "dirty": False}  # as if the first runs were made at another commit
+    path.write_text(json.dumps(older))
+    said.clear()
+    entries = table_i.record_provenance(tmp_path, said.append)
+    assert len(entries) == 2 and entries[1]["commit"] == code_commit()
+    assert any("2 code or checkpoint states" in line for line in said)

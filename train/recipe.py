@@ -28,12 +28,12 @@ import importlib.resources
 import os
 import re
 import shlex
-import subprocess
 import sys
 import tomllib
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
+from sgjax.utils.provenance import code_commit
 from train.label import label_config, parse_per_source
 
 NETWORKS = ("ernet", "pointnetgpd")
@@ -344,27 +344,6 @@ def labels_dir(name: str, cache: str | os.PathLike | None = None) -> Path:
     from sgjax.utils.cache import cache_dir
 
     return Path(cache, "labels", name) if cache is not None else cache_dir("labels", name)
-
-
-def code_commit() -> dict[str, Any]:
-    """The git commit of this code -> {"sha": "<HEAD>" | "unknown", "dirty": bool | None}.
-
-    Only the repository whose top level holds this package counts (an installed copy inside some other
-    checkout is "unknown"). dirty: tracked files differ from HEAD; untracked files are left out, or
-    every run directory and cache kept in the checkout (runs/ by default) would mark the code dirty.
-    """
-    root = Path(__file__).resolve().parent.parent
-
-    def git(*args: str) -> str:
-        done = subprocess.run(["git", "-C", str(root), *args], capture_output=True, text=True, timeout=30, check=True)
-        return done.stdout.strip()
-
-    try:
-        if Path(git("rev-parse", "--show-toplevel")).resolve() != root:
-            return {"sha": "unknown", "dirty": None}
-        return {"sha": git("rev-parse", "HEAD"), "dirty": bool(git("status", "--porcelain", "--untracked-files=no"))}
-    except (OSError, subprocess.SubprocessError):
-        return {"sha": "unknown", "dirty": None}
 
 
 def run_meta(recipe: Recipe, tiny: bool) -> dict[str, Any]:
