@@ -118,6 +118,8 @@ BAD = [
     ("labels.0.per_source", "stage1:8", "labels[0].per_source"),
     ("labels.0.per_source", "stage1=8,magic=8", "labels[0].per_source"),
     ("labels.0.per_source", "stage1=0", "labels[0]"),  # LabelConfig's own check: some grasps
+    ("gripper", "no-such-gripper", "gripper"),
+    ("gripper", 3, "gripper"),
 ]
 
 
@@ -197,6 +199,9 @@ def test_tiny_run_makes_a_loadable_checkpoint_recording_recipe_and_commit(tiny_r
         assert meta["commit"] == {"sha": "unknown", "dirty": None}
     if recipe.network == "pointnetgpd":
         assert meta["network"] == "pointnetgpd"  # extra_meta does not replace it
+    # The recipe's gripper (the default one where it names none) labelled the set and trained the model.
+    assert checkpoint.meta_gripper(meta) == recipe.spec() == label.data_gripper(first.label_dirs)
+    assert ("gripper" in meta["recipe"]) == (recipe.gripper is not None)
 
 
 @pytest.mark.parametrize("name", SHIPPED)

@@ -77,11 +77,12 @@ class LabelSet:
         first, _, end = self.scenes.partition(":")
         return int(first), int(end)
 
-    def config(self, note: Callable[[str], None] | None = None):
-        """The LabelConfig `sgjax label` builds from these options (`label_config`)."""
+    def config(self, note: Callable[[str], None] | None = None, gripper=None):
+        """The LabelConfig `sgjax label` builds from these options (`label_config`); gripper: a GripperSpec
+        (`sgjax label --gripper`; None: the default one)."""
         return label_config(
             objects=self.objects, seed=self.seed, camera=self.camera, n_objects=self.n_objects,
-            targets_per_scene=self.targets_per_scene, per_source=self.per_source, note=note,
+            targets_per_scene=self.targets_per_scene, per_source=self.per_source, note=note, gripper=gripper,
         )
 
     def tiny(self) -> LabelSet:
@@ -113,14 +114,17 @@ class TrainSettings:
     seed: int
     hand_points: int = 0  # E-RNet only: points of the hand's swept volume (`sgjax train --hand-points`)
 
-    def config(self, network: str):
-        """-> the TrainConfig of these settings, with the network's config of size `model`."""
+    def config(self, network: str, gripper=None):
+        """-> the TrainConfig of these settings, with the network's config of size `model`, for `gripper`
+        (a GripperSpec; None: the default one), as `sgjax train` builds it from the gripper's labels."""
+        from sgjax.geometry.gripper import GripperSpec
         from train.trainer import TrainConfig
 
+        spec = GripperSpec() if gripper is None else gripper
         return TrainConfig(
             epochs=self.epochs, batch_size=self.batch_size, lr=self.lr, weight_decay=self.weight_decay, seed=self.seed,
             held_out_fraction=self.held_out_fraction, lr_decay_epochs=self.lr_decay_epochs,
-            model=_network_config(network, self.model, self.hand_points),
+            model=_network_config(network, self.model, self.hand_points, spec.num_refinements), spec=spec,
         )
 
     def tiny(self) -> TrainSettings:
@@ -131,15 +135,16 @@ class TrainSettings:
         )
 
 
-def _network_config(network: str, model: str, hand_points: int):
-    """The network's config of size `model` (as `sgjax train --model M --hand-points H` builds it)."""
+def _network_config(network: str, model: str, hand_points: int, refinements: int = 3):
+    """The network's config of size `model` (as `sgjax train --model M --hand-points H` builds it, with one
+    refine output per refinement of the gripper)."""
     if network == "pointnetgpd":
         from sgjax.stage2.pointnetgpd import PointNetGPDConfig
 
         return getattr(PointNetGPDConfig, model)()
     from sgjax.stage2.ernet import ERNetConfig
 
-    return getattr(ERNetConfig, model)(hand_points=hand_points)
+    return getattr(ERNetConfig, model)(hand_points=hand_points, n_refinements=refinements)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -154,23 +159,36 @@ class Recipe:
     train: TrainSettings
     path: str = ""
     sha256: str = ""
+    gripper: str | None = None  # a preset name or gripper file (`sgjax --gripper`); None: the default gripper
 
     def tiny(self) -> Recipe:
         """The same recipe at test size (`LabelSet.tiny`, `TrainSettings.tiny`)."""
         return dataclasses.replace(self, labels=tuple(s.tiny() for s in self.labels), train=self.train.tiny())
 
+    def spec(self):
+        """The recipe's GripperSpec (`load_gripper(gripper)`; the default one without a gripper)."""
+        from sgjax.geometry.gripper import GripperSpec
+        from sgjax.geometry.gripper_files import load_gripper
+
+        return GripperSpec() if self.gripper is None else load_gripper(self.gripper)
+
     def to_dict(self) -> dict[str, Any]:
-        """The recipe as JSON-ready data (what a checkpoint's meta["recipe"] holds, with "tiny")."""
-        return dataclasses.asdict(self)
+        """The recipe as JSON-ready data (what a checkpoint's meta["recipe"] holds, with "tiny"). A recipe
+        for the default gripper has no "gripper" entry, as before recipes named one."""
+        data = dataclasses.asdict(self)
+        if data["gripper"] is None:
+            del data["gripper"]
+        return data
 
 
 # ---------------------------------------------------------------------------------------------
 # Reading and checking recipe files.
 
-_TOP = {"name": str, "network": str, "description": str, "cpu_hours": float, "labels": list, "train": dict}
+_TOP = {"name": str, "network": str, "description": str, "cpu_hours": float, "labels": list, "train": dict,
+        "gripper": str}
 _LABEL = {f.name: f.type for f in dataclasses.fields(LabelSet)}
 _TRAIN = {f.name: f.type for f in dataclasses.fields(TrainSettings)}
-_OPTIONAL = {"hand_points"}  # [train] keys that may be left out (PointNetGPD has no hand input)
+_OPTIONAL = {"hand_points", "gripper"}  # keys that may be left out (PointNetGPD has no hand input; the default gripper)
 _TYPES = {"str": str, "int": int, "float": float}
 
 
@@ -222,11 +240,20 @@ def parse_recipe(data: Mapping[str, Any], source: str = "recipe") -> Recipe:
     _check(top["cpu_hours"] > 0, source, "cpu_hours", f"must be > 0 (hours), got {top['cpu_hours']}")
     if not top["labels"]:
         raise RecipeError(source, "labels", "needs at least one [[labels]] set")
-    sets = tuple(_label_set(entry, f"labels[{i}]", source) for i, entry in enumerate(top["labels"]))
+    gripper = top.get("gripper")
+    spec = None
+    if gripper is not None:
+        from sgjax.geometry.gripper_files import GripperFileError, load_gripper
+
+        try:
+            spec = load_gripper(gripper)
+        except (GripperFileError, FileNotFoundError, ValueError) as exc:
+            raise RecipeError(source, "gripper", str(exc)) from None
+    sets = tuple(_label_set(entry, f"labels[{i}]", source, spec) for i, entry in enumerate(top["labels"]))
     names = [s.name for s in sets]
     _check(len(set(names)) == len(names), source, "labels", f"names each set once, got {names}")
     settings = _train_settings(top["train"], top["network"], source)
-    return Recipe(top["name"], top["network"], top["description"], top["cpu_hours"], sets, settings)
+    return Recipe(top["name"], top["network"], top["description"], top["cpu_hours"], sets, settings, gripper=gripper)
 
 
 def _fields(table: Any, schema: Mapping[str, Any], where: str, source: str) -> dict[str, Any]:
@@ -267,7 +294,7 @@ def _check_choice(value: str, choices: tuple[str, ...], field: str, source: str)
     _check(value in choices, source, field, f"must be one of {', '.join(choices)}, got {value!r}")
 
 
-def _label_set(entry: Any, where: str, source: str) -> LabelSet:
+def _label_set(entry: Any, where: str, source: str, spec=None) -> LabelSet:
     """One [[labels]] entry, checked: the CLI's own LabelConfig is built from it as the last check."""
     from envs.sensors import SENSORS
 
@@ -287,7 +314,7 @@ def _label_set(entry: Any, where: str, source: str) -> LabelSet:
     _check_per_source(fields["per_source"], f"{where}.per_source", source)
     labels = LabelSet(**fields)
     try:
-        labels.config()  # LabelConfig's own checks too (each source once, sealed seeds and objects, ...)
+        labels.config(gripper=spec)  # LabelConfig's own checks too (each source once, sealed seeds and objects, ...)
     except ValueError as exc:
         raise RecipeError(source, where, str(exc)) from None
     return labels
@@ -353,17 +380,19 @@ def run_meta(recipe: Recipe, tiny: bool) -> dict[str, Any]:
 
 
 def run_label_set(labels: LabelSet, cache: str | os.PathLike | None = None, *, small_db: bool = False,
-                  progress: bool = True) -> Path:
+                  progress: bool = True, gripper=None) -> Path:
     """Label (or resume labelling) one set into `labels_dir(labels.name, cache)` as `sgjax label` does
-    -> the directory. small_db: Stage 1 on the small primitive database (`sgjax label --small-db`)."""
+    -> the directory. small_db: Stage 1 on the small primitive database (`sgjax label --small-db`);
+    gripper: a GripperSpec (`sgjax label --gripper`; None: the default one)."""
     from sgjax.stage1.database import DBConfig, load_database
     from sgjax.stage1.pipeline import Stage1
     from train import label
 
-    config = labels.config(note=(lambda text: print(text, file=sys.stderr)) if progress else None)
+    config = labels.config(note=(lambda text: print(text, file=sys.stderr)) if progress else None, gripper=gripper)
     out = labels_dir(labels.name, cache)
     first, end = labels.scene_range
-    stage1 = Stage1(load_database(DBConfig.small(), progress=progress), config.stage1) if small_db else None
+    stage1 = Stage1(load_database(DBConfig.for_gripper(config.spec, small=True), progress=progress), config.stage1) \
+        if small_db else None
     summary = label.label(out, end, config, stage1=stage1, progress=progress, first_scene=first)
     if progress:
         print(f"labels {labels.name} ({out}):", *(f"  {line}" for line in summary.lines()), sep="\n")
@@ -399,8 +428,9 @@ def run_recipe(recipe: Recipe, out: str | os.PathLike, *, cache: str | os.PathLi
     raise (ValueError for a directory made with other settings, `train.dataset.DatasetError`).
     """
     run = recipe.tiny() if tiny else recipe
-    dirs = [run_label_set(s, cache, small_db=tiny, progress=progress) for s in run.labels]
-    config = run.train.config(run.network)
+    spec = run.spec()
+    dirs = [run_label_set(s, cache, small_db=tiny, progress=progress, gripper=spec) for s in run.labels]
+    config = run.train.config(run.network, spec)
     result = _trainer(run.network)(
         [str(d) for d in dirs], out, config, progress=progress, extra_meta=run_meta(recipe, tiny)
     )
@@ -427,5 +457,6 @@ def ship_lines(run_dir: str | os.PathLike, name: str) -> list[str]:
 def describe(recipe: Recipe) -> str:
     """One recipe in a few lines (`sgjax train --list-recipes`)."""
     sets = "; ".join(f"{s.name} scenes {s.scenes} seed {s.seed} ({s.objects}, {s.camera})" for s in recipe.labels)
+    gripper = "" if recipe.gripper is None else f", gripper {recipe.gripper}"
     return (f"{recipe.name}  [{recipe.network}, {recipe.train.model}, {recipe.train.epochs} epochs, "
-            f"~{recipe.cpu_hours:g} CPU h]\n  {recipe.description}\n  labels: {sets}")
+            f"~{recipe.cpu_hours:g} CPU h{gripper}]\n  {recipe.description}\n  labels: {sets}")
