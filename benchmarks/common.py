@@ -71,3 +71,31 @@ def reference_tree(commit: str) -> str:
         os.makedirs(os.path.dirname(path), exist_ok=True)
         subprocess.run(["git", "-C", REPO, "worktree", "add", "--detach", path, sha], check=True, capture_output=True)
     return path
+
+
+def stage1_only_planner(spec, db=None):
+    """The planner with no Stage-2 network (`scorers.Stage1Order`, no refinement) for gripper `spec`: the
+    default preset's Stage 1, on `db` (None: the database of `spec`, built on first use)."""
+    import dataclasses
+
+    from sgjax import presets
+    from sgjax.planner import Planner
+    from sgjax.stage1.database import DBConfig, load_database
+    from sgjax.stage2.scorers import Stage1Order
+
+    db = load_database(DBConfig.for_gripper(spec, False), progress=False) if db is None else db
+    return Planner(Stage1Order(), db, dataclasses.replace(presets.get("default", gripper=spec), use_refinement=False))
+
+
+def first_views(setting, config, scenes: int, seed: int) -> list:
+    """The first view of each of a decluttering setting's scenes 0..scenes-1 (an `eval.declutter.Setting`,
+    seen through `config`) -> [(points [N, 3], labels [N])], as the benchmark's first plan sees them."""
+    from envs.objects import load_object_set
+    from eval import declutter
+
+    objects = load_object_set(setting.object_set)
+    views = []
+    for s in range(scenes):
+        scene = declutter.make_benchmark_scene(objects, setting.n_objects, seed, s, config)
+        views.append(declutter.observe(scene, config, seed=declutter.scene_seed(seed, s))[1:3])
+    return views

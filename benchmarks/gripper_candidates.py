@@ -14,15 +14,11 @@ from __future__ import annotations
 import argparse
 import dataclasses
 
-from envs.objects import load_object_set
-from eval import declutter
-from eval.declutter import DeclutterConfig, apply_setting, get_setting, make_benchmark_scene, observe
+from benchmarks.common import first_views, stage1_only_planner
+from eval.declutter import DeclutterConfig, apply_setting, get_setting
 from eval.report import markdown_table
-from sgjax import presets
 from sgjax.geometry.gripper import GripperSpec
-from sgjax.planner import Planner
 from sgjax.stage1.database import DBConfig, load_database
-from sgjax.stage2.scorers import Stage1Order
 
 
 def changed(spec: GripperSpec, change: str) -> GripperSpec:
@@ -46,15 +42,10 @@ def main(argv=None) -> None:
     config = dataclasses.replace(apply_setting(setting, DeclutterConfig()), sensor="exact", masks="truth")
     spec = config.gripper
     db = load_database(DBConfig.for_gripper(spec, False), progress=False)  # the gripper's own templates
-    objects = load_object_set(setting.object_set)
-    views = []
-    for s in range(args.scenes):
-        scene = make_benchmark_scene(objects, setting.n_objects, args.seed, s, config)
-        views.append(observe(scene, config, seed=declutter.scene_seed(args.seed, s))[1:3])
+    views = first_views(setting, config, args.scenes, args.seed)
     rows = []
     for name in ["as it is", *args.change]:
-        filters = spec if name == "as it is" else changed(spec, name)
-        planner = Planner(Stage1Order(), db, dataclasses.replace(presets.get("default", gripper=filters), use_refinement=False))
+        planner = stage1_only_planner(spec if name == "as it is" else changed(spec, name), db)
         total = with_candidates = collisions = 0
         for points, labels in views:
             plan = planner.plan(points, labels, config.camera.position, seed=0)

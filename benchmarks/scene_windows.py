@@ -11,31 +11,20 @@ those whose only clear candidates came from a later window (the first window all
 from __future__ import annotations
 
 import argparse
-import dataclasses
 
-from envs.objects import load_object_set
-from eval import declutter
-from eval.declutter import DeclutterConfig, apply_setting, get_setting, make_benchmark_scene, observe
+from benchmarks.common import first_views, stage1_only_planner
+from eval.declutter import DeclutterConfig, apply_setting, get_setting
 from eval.report import markdown_table
-from sgjax import presets
-from sgjax.planner import Planner
-from sgjax.stage1.database import DBConfig, load_database
-from sgjax.stage2.scorers import Stage1Order
 
 
 def count(setting: str, scenes: int, seed: int) -> list:
     """[setting, objects, with candidates, tested beyond the first window, rescued by a later window]."""
     spec_setting = get_setting(setting)
     config = apply_setting(spec_setting, DeclutterConfig())
-    objects = load_object_set(spec_setting.object_set)
-    spec = config.gripper
-    planner_config = dataclasses.replace(presets.get("default", gripper=spec), use_refinement=False)
-    planner = Planner(Stage1Order(), load_database(DBConfig.for_gripper(spec, False), progress=False), planner_config)
-    slots = planner_config.stage1.filter.scene_slots
+    planner = stage1_only_planner(config.gripper)
+    slots = planner.config.stage1.filter.scene_slots
     total = with_candidates = beyond = rescued = 0
-    for s in range(scenes):
-        scene = make_benchmark_scene(objects, spec_setting.n_objects, seed, s, config)
-        _, points, labels, _ = observe(scene, config, seed=declutter.scene_seed(seed, s))
+    for points, labels in first_views(spec_setting, config, scenes, seed):
         plan = planner.plan(points, labels, config.camera.position, seed=0)
         for c in plan.candidates:
             tested_collided = c.counts.get("collision_scene", 0)

@@ -135,7 +135,7 @@ class TrainSettings:
         )
 
 
-def _network_config(network: str, model: str, hand_points: int, refinements: int = 3):
+def _network_config(network: str, model: str, hand_points: int, refinements: int):
     """The network's config of size `model` (as `sgjax train --model M --hand-points H` builds it, with one
     refine output per refinement of the gripper)."""
     if network == "pointnetgpd":

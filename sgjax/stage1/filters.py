@@ -342,18 +342,19 @@ def windowed_scene_test(poses, widths, passed, scene_points, scene_mask, spec: G
         return scene_collisions(take(p_sorted), take(w_sorted), take(active), scene_points, scene_mask, spec, cfg,
                                 viewpoint)
 
+    tested_by = lambda k: active & (jnp.arange(total) < k * slots)  # the first k windows' candidates
+
     def more(state):
-        k, hit, tested = state
-        clear = jnp.any(tested & ~hit)
+        k, hit = state
+        clear = jnp.any(tested_by(k) & ~hit)
         return (k < windows) & ~clear & active[jnp.minimum(k * slots, total - 1)]
 
     def step(state):
-        k, hit, tested = state
-        hit = jax.lax.dynamic_update_slice_in_dim(hit, window(k), k * slots, 0)
-        in_window = (jnp.arange(total) >= k * slots) & (jnp.arange(total) < (k + 1) * slots)
-        return k + 1, hit, tested | (in_window & active)
+        k, hit = state
+        return k + 1, jax.lax.dynamic_update_slice_in_dim(hit, window(k), k * slots, 0)
 
-    _, hit, tested = jax.lax.while_loop(more, step, (0, jnp.zeros(total, bool), jnp.zeros(total, bool)))
+    k, hit = jax.lax.while_loop(more, step, (0, jnp.zeros(total, bool)))
+    tested = tested_by(k)
     collision = jnp.zeros(m, bool).at[order[:m]].set(hit[:m] & tested[:m])
     tested_m = jnp.zeros(m, bool).at[order[:m]].set(tested[:m])
     return collision, passed & ~tested_m
