@@ -10,9 +10,9 @@ has seen and none ever will:
   * `RESERVED_SEEDS`: benchmark seeds for the report only, far from every seed used so far (the seeds
     decisions were made on: docs/decisions.md).
 
-Only the report path (`eval.table_i`, `sgjax table-i`) runs them: `check_benchmark` refuses a benchmark
-run on a reserved seed or the sealed set unless it is the report, and `check_labelling` refuses to
-label the sealed objects or on a reserved seed at all. tests/test_sealed.py fails when any other file
+Only the report path (`eval.report_path`, `sgjax table-i` and `table-ii`) runs them: `check_benchmark`
+refuses a benchmark run on a reserved seed or the sealed set unless it is the report, and
+`check_labelling` refuses to label the sealed objects or on a reserved seed at all. tests/test_sealed.py fails when any other file
 of the repository names them.
 """
 

@@ -289,7 +289,7 @@ class PointNetGPDMethod(_CandidateMethod):
         config = config or BaselineConfig()
         if generator not in ("gpd", "stage1"):
             raise ValueError(f"generator must be 'gpd' or 'stage1', got {generator!r}")
-        network = pointnetgpd.as_model(model)  # first: a missing checkpoint fails before the database loads
+        network = pointnetgpd.as_model(model, config.spec)  # first: a missing checkpoint fails before the database loads
         checkpoint.warn_gripper("PointNetGPD", model, checkpoint.POINTNETGPD_DEFAULT_DIR, config.spec)
         if generator == "gpd":
             self.name, make = "pointnetgpd", functools.partial(gpd_candidates, config=config)
@@ -322,7 +322,7 @@ class GPDStage2Method(_CandidateMethod):
         from sgjax.stage2 import ernet
 
         config = config or BaselineConfig()
-        network = ernet.as_model(model)
+        network = ernet.as_model(model, config.spec)
         checkpoint.warn_gripper("E-RNet", model, checkpoint.ERNET_DEFAULT_DIR, config.spec)
         super().__init__(network, config, functools.partial(gpd_candidates, config=config))
 

@@ -173,7 +173,8 @@ def run_benchmark(
         assets themselves (tests). n_objects: objects per scene instead of the setting's.
     The setting's label in logs and tables is "<object set>-<n>" (e.g. seen-10, tiny-4, mymeshes-10), and
     "@<sensor>+<masks>" after it when the method sees the scene through a sensor (seen-10@realsense+clusters);
-    a setting that fixes its gripper and sensor (real-similar, real-novel) keeps its own name.
+    a setting that fixes its gripper and sensor (real-similar, real-novel) keeps its own name (with the
+    object set's after it when `objects` replaces the setting's: real-novel-mymeshes).
     pictures: draw the first this many scenes. for_report: the report path's run (`envs.sealed`); other runs
     may not use a reserved seed or the sealed objects (SealedDataError).
     Raises ValueError / UnknownMethod / MethodUnavailable.
@@ -215,8 +216,9 @@ def run_benchmark(
     else:
         assets, label, identity = resolve_objects(chosen, objects, progress)
     setting_label = f"{label}-{n}" + (f"@{config.view}" if config.view else "")
-    if chosen.fixes_hardware and objects is None and object_assets is None and n_objects is None:
-        setting_label = chosen.name  # its gripper and sensor are part of the setting
+    if chosen.fixes_hardware and object_assets is None and n_objects is None:
+        # Its gripper and sensor are part of the setting: its name, and the objects' when they replace its own.
+        setting_label = chosen.name if objects is None else f"{chosen.name}-{label}"
     # Built before the logs are read: its settings are part of the resume key. The gripper is not among
     # the key's options: the config's part of the key holds it (DeclutterConfig.gripper).
     if instance is None:

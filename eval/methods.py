@@ -104,8 +104,9 @@ def _supergrasp_pointnetgpd(model=None, small_db: bool = False, db=None, config=
     from eval.supergrasp import PlannerMethod
     from sgjax.stage2 import checkpoint, pointnetgpd
 
-    method = PlannerMethod("supergrasp-pointnetgpd", False, model=pointnetgpd.as_model(model), small_db=small_db, db=db,
-                           config=config, gripper=gripper)
+    spec = config.spec if config is not None else gripper  # the shipped PointNetGPD for it (None: the default)
+    method = PlannerMethod("supergrasp-pointnetgpd", False, model=pointnetgpd.as_model(model, spec), small_db=small_db,
+                           db=db, config=config, gripper=gripper)
     checkpoint.warn_gripper("PointNetGPD", model, checkpoint.POINTNETGPD_DEFAULT_DIR, method.config.spec)
     return method
 

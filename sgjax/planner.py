@@ -377,7 +377,8 @@ class _Scored:
 class Planner:
     """Stage 1 + Stage 2 with the database and the E-RNet weights on the device.
 
-    model: an ERNet, a `sgjax train` run directory, or None (the shipped default, `ernet.load_default_model`);
+    model: an ERNet, a `sgjax train` run directory, or None (the shipped one for the gripper, `config.spec`:
+        `ernet.load_default_model`);
         a PointNetGPD instead: the network ablation (`sgjax.stage2.scorers`; needs use_refinement=False);
     db: a PrimitiveDB, or None (the default database from the cache, built on first use);
     config: a `PlannerConfig` (named ones: `sgjax.presets`).
@@ -391,13 +392,15 @@ class Planner:
     def __init__(self, model=None, db: PrimitiveDB | None = None, config: PlannerConfig = PlannerConfig()):
         enable_compilation_cache()  # a new process loads what an earlier one compiled
         # PointNetGPD in E-RNet's place is the network ablation (`scorers`): it has no refinement head.
-        self.model = model if isinstance(model, (pointnetgpd.PointNetGPD, scorers.Stage1Order)) else ernet.as_model(model)
+        network_model = isinstance(model, (pointnetgpd.PointNetGPD, scorers.Stage1Order))
+        self.model = model if network_model else ernet.as_model(model, config.spec)
         self.config = config
         if isinstance(self.model, scorers.Stage1Order):  # no network, so no checkpoint and no gripper to check
             self.checkpoint, self.checkpoint_gripper = scorers.STAGE1_ORDER, None
         else:
-            self.checkpoint = checkpoint.checkpoint_name(model, checkpoint.ERNET_DEFAULT_DIR)
-            self.checkpoint_gripper = checkpoint.model_gripper(model, checkpoint.ERNET_DEFAULT_DIR)
+            shipped = checkpoint.shipped_dir(checkpoint.ERNET_DEFAULT_DIR, config.spec)  # model None: this one
+            self.checkpoint = checkpoint.checkpoint_name(model, shipped)
+            self.checkpoint_gripper = checkpoint.model_gripper(model, shipped)
             network = "E-RNet" if isinstance(self.model, ernet.ERNet) else type(self.model).__name__
             checkpoint.warn_gripper(network, model, checkpoint.ERNET_DEFAULT_DIR, config.spec)
         self._scorer = scorers.scorer_for(self.model)

@@ -915,13 +915,15 @@ def _cmd_declutter(args: argparse.Namespace) -> int:
     return 0
 
 
-def _cmd_table_i(args: argparse.Namespace) -> int:
-    from eval import table_i
+def _cmd_report_table(args: argparse.Namespace) -> int:
+    """`sgjax table-i` and `sgjax table-ii`: the report path's table `args.table` (`eval.report_path`)."""
+    from eval import report_path
     from eval.methods import MethodUnavailable
 
-    methods = table_i.METHODS if args.methods is None else [m.strip() for m in args.methods.split(",") if m.strip()]
+    methods = None if args.methods is None else [m.strip() for m in args.methods.split(",") if m.strip()]
     try:
-        results, skipped = table_i.run_table_i(args.out, scenes=args.scenes, methods=methods, progress=not args.quiet)
+        results, skipped = report_path.run_table(args.out, args.table, scenes=args.scenes, methods=methods,
+                                                 progress=not args.quiet)
     except (ValueError, MethodUnavailable, FileNotFoundError) as exc:
         return _fail(str(exc))
     except KeyboardInterrupt:
@@ -1248,17 +1250,25 @@ def build_parser() -> argparse.ArgumentParser:
     _add_gripper(p, GRIPPER_HELP + "; the simulated gripper and the method's are this one (logs record it)")
     p.set_defaults(func=_cmd_declutter)
 
-    p = sub.add_parser(
-        "table-i",
-        help="the report: Table I on a reserved seed, the unseen setting on the sealed objects (resumable)",
-        description="Every Table I method on seen-10, seen-20 and the sealed unseen objects, on a seed reserved for "
-        "reporting (envs/sealed.py): numbers no decision saw. Run it to report, never to decide.",
-    )
-    p.add_argument("--out", required=True, help="results directory (logs, results.md; rerun to continue)")
-    p.add_argument("--scenes", type=int, default=30, help="scenes per setting (default 30)")
-    p.add_argument("--methods", default=None, metavar="M,...", help="a subset of the methods, in this order")
-    p.add_argument("--quiet", action="store_true", help="no progress bars")
-    p.set_defaults(func=_cmd_table_i)
+    from eval.report_path import TABLE_I, TABLE_II  # light: names and settings
+
+    for command, table, what in (
+        ("table-i", TABLE_I, "Every Table I method on seen-10, seen-20 and the sealed unseen objects"),
+        ("table-ii", TABLE_II, "Table II re-created in simulation (the ag-105-145 gripper, stereo depth, segmented "
+         "masks): its methods on real-similar and on real-novel with the sealed objects"),
+    ):
+        p = sub.add_parser(
+            command,
+            help=f"the report: {table.name} on a reserved seed, the unseen objects sealed ones (resumable)",
+            description=f"{what}, on a seed reserved for reporting (envs/sealed.py): numbers no decision saw. "
+            "Run it to report, never to decide.",
+        )
+        p.add_argument("--out", required=True, help="results directory (logs, results.md; rerun to continue)")
+        p.add_argument("--scenes", type=int, default=30, help="scenes per setting (default 30)")
+        p.add_argument("--methods", default=None, metavar="M,...",
+                       help=f"a subset of the methods ({', '.join(table.methods)}), in this order")
+        p.add_argument("--quiet", action="store_true", help="no progress bars")
+        p.set_defaults(func=_cmd_report_table, table=table)
 
     baselines_parser = sub.add_parser("baselines", help="set up the environments of out-of-process baselines")
     baselines_sub = baselines_parser.add_subparsers(dest="baselines_command", required=True)

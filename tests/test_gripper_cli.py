@@ -279,3 +279,41 @@ def test_the_planner_names_its_checkpoint_and_warns_for_another_gripper(trained,
         Planner(None, small_db, presets.get("default", gripper=MINE))
     assert presets.get("paper", gripper=MINE).stage1.filter == presets.get("paper").stage1.filter
     assert presets.get("default", gripper=GripperSpec()) == presets.get("default")
+
+
+def test_the_planner_takes_the_checkpoint_shipped_for_its_gripper(trained, small_db, tmp_path, monkeypatch):
+    """Beside `ernet_default`, a checkpoint shipped for another gripper (`sgjax/models/ernet_<gripper>`,
+    its meta's record) is what a planner for that gripper loads by default, without a warning; a gripper
+    nothing was shipped for still gets the default one and the warning."""
+    import shutil
+
+    from sgjax import presets
+    from sgjax.planner import Planner
+    from sgjax.stage2 import checkpoint
+
+    _, _, run = trained
+    models = tmp_path / "models"
+    shutil.copytree(checkpoint.ERNET_DEFAULT_DIR / checkpoint.CHECKPOINT_DIR, models / "ernet_default" / checkpoint.CHECKPOINT_DIR)
+    shutil.copytree(run / checkpoint.CHECKPOINT_DIR, models / "ernet_mine" / checkpoint.CHECKPOINT_DIR)
+    monkeypatch.setattr(checkpoint, "MODELS_DIR", models)
+    monkeypatch.setattr(checkpoint, "ERNET_DEFAULT_DIR", models / "ernet_default")
+    assert checkpoint.shipped_dir(checkpoint.ERNET_DEFAULT_DIR, MINE) == models / "ernet_mine"
+    assert checkpoint.shipped_dir(checkpoint.ERNET_DEFAULT_DIR, GripperSpec()) == models / "ernet_default"
+    assert checkpoint.shipped_dir(checkpoint.ERNET_DEFAULT_DIR, None) == models / "ernet_default"
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        mine = Planner(None, small_db, presets.get("default", gripper=MINE))
+        default = Planner(None, small_db)
+    assert not [w for w in caught if "trained for gripper" in str(w.message)]
+    assert mine.checkpoint == "sgjax/models/ernet_mine" and mine.checkpoint_gripper == MINE
+    assert mine.model.config == trained_config(run)
+    assert default.checkpoint == "sgjax/models/ernet_default" and default.checkpoint_gripper == GripperSpec()
+    with pytest.warns(UserWarning, match="E-RNet checkpoint sgjax/models/ernet_default was trained for gripper default"):
+        Planner(None, small_db, presets.get("default", gripper=load_gripper(ROBOTIQ)))
+
+
+def trained_config(run):
+    """The model config a run directory's checkpoint records."""
+    from sgjax.stage2 import ernet
+
+    return ernet.load_model(run)[0].config

@@ -24,7 +24,7 @@ ROOT = Path(__file__).resolve().parents[1]
 ALLOWED = {
     "envs/sealed.py",
     "envs/objects.py",
-    "eval/table_i.py",
+    "eval/report_path.py",
     "tests/test_sealed.py",
     "README.md",
     "docs/benchmark.md",
@@ -84,7 +84,7 @@ def test_the_guard_sees_a_file_that_names_them(repository):
     for text in ("seed 100", "--seed 10001", "seed × 1000 + index", "scenes 0:1000"):
         assert not sealed_mentions(text), text
     assert "unseen-sealed" in repository["envs/sealed.py"]
-    assert "sealed.SEALED_OBJECT_SET" in repository["eval/table_i.py"]
+    assert "sealed.SEALED_OBJECT_SET" in repository["eval/report_path.py"]
     assert str(sealed.SEALED_GENERATOR_SEED) in repository["envs/sealed.py"]
 
 
@@ -126,17 +126,34 @@ def test_labelling_refuses_the_sealed_objects_and_reserved_seeds():
 
 
 def test_the_report_runs_every_table_i_method_on_the_reserved_seed():
-    from eval import table_i
+    from eval import report_path
     from eval.methods import METHODS
 
-    assert table_i.SEED in sealed.RESERVED_SEEDS
-    assert [s for s, _ in table_i.SETTINGS] == ["seen-10", "seen-20", "unseen-10"]
-    assert dict(table_i.SETTINGS)["unseen-10"] == sealed.SEALED_OBJECT_SET
-    names = {m.split("@")[0] for m in table_i.METHODS}
+    assert report_path.SEED in sealed.RESERVED_SEEDS
+    assert [s for s, _ in report_path.SETTINGS] == ["seen-10", "seen-20", "unseen-10"]
+    assert dict(report_path.SETTINGS)["unseen-10"] == sealed.SEALED_OBJECT_SET
+    names = {m.split("@")[0] for m in report_path.METHODS}
     assert names == {n for n, info in METHODS.items() if not info.diagnostic}
 
 
+def test_table_ii_re_creates_the_papers_real_world_table_on_the_reserved_seed():
+    """The paper's Table II methods on real-similar (seen objects) and real-novel on the sealed objects:
+    the ag-105-145 gripper, stereo depth and segmented masks (the settings' hardware)."""
+    from eval import report_path
+    from eval.declutter import get_setting
+
+    table = report_path.TABLE_II
+    assert table.methods == ("supergrasp", "s1+pointnetgpd", "pointnetgpd", "contact-graspnet")
+    assert table.settings == (("real-similar", None), ("real-novel", sealed.SEALED_OBJECT_SET))
+    for setting, _ in table.settings:
+        chosen = get_setting(setting)
+        assert (chosen.gripper, chosen.sensor, chosen.masks, chosen.n_objects) == ("ag-105-145", "stereo", "clusters", 10)
+
+
 def test_the_report_command_names_an_unknown_method_before_any_work(tmp_path, capsys):
+    assert main(["table-ii", "--out", str(tmp_path / "report"), "--methods", "pointnetgpd,no-such"]) == 2
+    assert "unknown method 'no-such'" in capsys.readouterr().err
+    assert not (tmp_path / "report").exists()
     assert main(["table-i", "--out", str(tmp_path / "report"), "--methods", "supergrasp,no-such-method"]) == 2
     assert "unknown method 'no-such-method'" in capsys.readouterr().err
     assert not (tmp_path / "report").exists()
@@ -145,22 +162,22 @@ def test_the_report_command_names_an_unknown_method_before_any_work(tmp_path, ca
 def test_the_report_records_the_code_and_checkpoints_it_ran_with(tmp_path):
     import json
 
-    from eval import table_i
+    from eval import report_path
     from sgjax.utils.provenance import code_commit
     from train import recipe
 
     said = []
-    first = table_i.record_provenance(tmp_path, said.append)
+    first = report_path.record_provenance(tmp_path, said.append)
     assert len(first) == 1 and first[0]["commit"] == code_commit()
     assert said[0].startswith(f"code {code_commit()['sha']}")
     ernet = first[0]["checkpoints"]["ernet_default"]  # the shipped E-RNet: its recipe, as the file is today
     assert ernet["recipe_sha256"] == recipe.load_recipe("ernet_default").sha256 and len(ernet["trained_at"]) == 40
-    assert table_i.record_provenance(tmp_path, said.append) == first  # resumed at the same code: nothing added
-    path = tmp_path / table_i.PROVENANCE
+    assert report_path.record_provenance(tmp_path, said.append) == first  # resumed at the same code: nothing added
+    path = tmp_path / report_path.PROVENANCE
     older = json.loads(path.read_text())
     older[0]["commit"] = {"sha": "0" * 40, "dirty": False}  # as if the first runs were made at another commit
     path.write_text(json.dumps(older))
     said.clear()
-    entries = table_i.record_provenance(tmp_path, said.append)
+    entries = report_path.record_provenance(tmp_path, said.append)
     assert len(entries) == 2 and entries[1]["commit"] == code_commit()
     assert any("2 code or checkpoint states" in line for line in said)

@@ -8,8 +8,10 @@ network module (`ernet`, `pointnetgpd`) binds these to its own class, shape-only
 
 A checkpoint knows its gripper: the trainer records `gripper_to_dict(spec)` of its training data as
 meta["gripper"]; `checkpoint_gripper(run_dir)` / `meta_gripper(meta)` read it back (a checkpoint without
-the record, as the shipped ones, counts as the default gripper), and `gripper_mismatch` words the warning
-a planner gives when it plans for another gripper than its network was trained for.
+the record, as the shipped defaults, counts as the default gripper), `shipped_dir` picks the shipped
+checkpoint made for a gripper (`sgjax/models/ernet_<gripper>` beside `ernet_default`), and
+`gripper_mismatch` words the warning a planner gives when it plans for another gripper than its network
+was trained for.
 """
 
 from __future__ import annotations
@@ -128,8 +130,6 @@ def as_model(model, model_type: type, load_model: LoadModel, default: Callable[[
 # The gripper a checkpoint was trained for (the trainer records `gripper_to_dict(spec)` as meta["gripper"]).
 
 GRIPPER_ITEM = "gripper"  # the meta entry
-DEFAULT_CHECKPOINT_NAMES = {ERNET_DEFAULT_DIR: "sgjax/models/ernet_default",
-                            POINTNETGPD_DEFAULT_DIR: "sgjax/models/pointnetgpd_default"}
 IN_MEMORY = "an in-memory model"
 
 
@@ -166,11 +166,27 @@ def checkpoint_gripper(run_dir: str | os.PathLike) -> GripperSpec:
     return _run_gripper(path, mtime)
 
 
+def shipped_dir(default_dir: Path, spec: GripperSpec | None) -> Path:
+    """The shipped checkpoint for gripper `spec`: of `default_dir` (`sgjax/models/ernet_default`) and its
+    siblings shipped for other grippers (`sgjax/models/ernet_<gripper>`), the first (default_dir, then by
+    name) whose meta records `spec` (`checkpoint_gripper`); default_dir when none does (planning with it
+    is then warned about, `warn_gripper`) or when spec is None."""
+    if spec is None:
+        return default_dir
+    prefix = default_dir.name.rsplit("_", 1)[0] + "_"
+    siblings = sorted(d for d in default_dir.parent.glob(prefix + "*") if d != default_dir)
+    for directory in [default_dir, *siblings]:
+        if (directory / CHECKPOINT_DIR).is_dir() and checkpoint_gripper(directory) == spec:
+            return directory
+    return default_dir
+
+
 def checkpoint_name(model, default_dir: Path) -> str:
     """How to name the checkpoint behind what a user passed as "the model" (None, a run directory or a
-    model): "sgjax/models/ernet_default" for the shipped one, the run directory, or "an in-memory model"."""
+    model): "sgjax/models/ernet_default" for the shipped one in `default_dir`, the run directory, or "an
+    in-memory model"."""
     if model is None:
-        return DEFAULT_CHECKPOINT_NAMES.get(default_dir, str(default_dir))
+        return f"sgjax/models/{default_dir.name}" if default_dir.parent == MODELS_DIR else str(default_dir)
     if isinstance(model, (str, os.PathLike)):
         return os.fspath(model)
     return IN_MEMORY
@@ -229,9 +245,10 @@ def gripper_mismatch(network: str, checkpoint: str, trained: GripperSpec | None,
 
 
 def warn_gripper(network: str, model, default_dir: Path, spec: GripperSpec, stacklevel: int = 3) -> str | None:
-    """`warnings.warn` the `gripper_mismatch` of the checkpoint behind `model` (None: the one shipped in
-    `default_dir`; a run directory; a model in memory is never warned about) planning for `spec`;
-    returns the message (None: no warning)."""
+    """`warnings.warn` the `gripper_mismatch` of the checkpoint behind `model` (None: the one shipped for
+    `spec`, `shipped_dir(default_dir, spec)`; a run directory; a model in memory is never warned about)
+    planning for `spec`; returns the message (None: no warning)."""
+    default_dir = shipped_dir(default_dir, spec)
     message = gripper_mismatch(network, checkpoint_name(model, default_dir), model_gripper(model, default_dir), spec)
     if message is not None:
         warnings.warn(message, GripperMismatchWarning, stacklevel=stacklevel)

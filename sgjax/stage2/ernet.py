@@ -575,11 +575,12 @@ def load_model(run_dir: str | os.PathLike, epoch: int | None = None) -> tuple[ER
     return restore_run(run_dir, epoch, lambda meta: abstract_model(ERNetConfig.from_dict(meta["model_config"])))
 
 
-def load_default_model() -> ERNet:
-    """The shipped E-RNet checkpoint (`sgjax/models/ernet_default/`, a `sgjax train` run directory).
+def load_default_model(spec: GripperSpec | None = None) -> ERNet:
+    """The shipped E-RNet checkpoint for gripper `spec` (`checkpoint.shipped_dir`: `sgjax/models/ernet_default/`,
+    a `sgjax train` run directory, unless one was shipped for `spec`; None: that one).
 
     Raises FileNotFoundError naming the path and how to make one when it is missing."""
-    path = checkpoint.ERNET_DEFAULT_DIR
+    path = checkpoint.shipped_dir(checkpoint.ERNET_DEFAULT_DIR, spec)
     return checkpoint.load_default(
         path,
         load_model,
@@ -589,6 +590,8 @@ def load_default_model() -> ERNet:
     )
 
 
-def as_model(model) -> ERNet:
-    """An ERNet from None (the shipped default), a model, or a `sgjax train` run directory."""
-    return checkpoint.as_model(model, ERNet, load_model, load_default_model, "an ERNet, a `sgjax train` run directory")
+def as_model(model, spec: GripperSpec | None = None) -> ERNet:
+    """An ERNet from None (the shipped one for gripper `spec`, `load_default_model`), a model, or a
+    `sgjax train` run directory."""
+    return checkpoint.as_model(model, ERNet, load_model, lambda: load_default_model(spec),
+                               "an ERNet, a `sgjax train` run directory")

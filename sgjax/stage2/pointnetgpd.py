@@ -268,11 +268,12 @@ def load_model(run_dir: str | os.PathLike, epoch: int | None = None) -> tuple[Po
     return restore_run(run_dir, epoch, abstract_from_meta, missing_hint=f"; train one with `{TRAIN_COMMAND}`")
 
 
-def load_default_model() -> PointNetGPD:
-    """The shipped PointNetGPD checkpoint (`sgjax/models/pointnetgpd_default/`, a run directory).
+def load_default_model(spec: GripperSpec | None = None) -> PointNetGPD:
+    """The shipped PointNetGPD checkpoint for gripper `spec` (`checkpoint.shipped_dir`:
+    `sgjax/models/pointnetgpd_default/`, a run directory, unless one was shipped for `spec`; None: that one).
 
     Raises FileNotFoundError naming the path and the training command when it is missing."""
-    path = checkpoint.POINTNETGPD_DEFAULT_DIR
+    path = checkpoint.shipped_dir(checkpoint.POINTNETGPD_DEFAULT_DIR, spec)
     return checkpoint.load_default(
         path,
         load_model,
@@ -282,6 +283,8 @@ def load_default_model() -> PointNetGPD:
     )
 
 
-def as_model(model) -> PointNetGPD:
-    """A PointNetGPD from None (the shipped default), a model, or a run directory."""
-    return checkpoint.as_model(model, PointNetGPD, load_model, load_default_model, "a PointNetGPD, a run directory")
+def as_model(model, spec: GripperSpec | None = None) -> PointNetGPD:
+    """A PointNetGPD from None (the shipped one for gripper `spec`, `load_default_model`), a model, or a run
+    directory."""
+    return checkpoint.as_model(model, PointNetGPD, load_model, lambda: load_default_model(spec),
+                               "a PointNetGPD, a run directory")

@@ -1,12 +1,15 @@
-"""The report path: Table I on data no decision saw (`sgjax table-i`).
+"""The report path: the paper's tables on data no decision saw (`sgjax table-i`, `sgjax table-ii`).
 
-Every method of the paper's Table I (and the ablations `supergrasp-pointnetgpd` and `supergrasp-stage1`), three
-settings, N scenes each, on the first reserved seed of `envs.sealed`: seen-10 and seen-20 on the seen
-objects, and the unseen setting on the sealed objects ("unseen-sealed-10"). This module is the only
-caller of `run_benchmark(..., for_report=True)`; development runs use `sgjax declutter` on other seeds
-(seed 0 is the development seed of the docs).
+Table I: every method of the paper's Table I (and the ablations `supergrasp-pointnetgpd` and
+`supergrasp-stage1`), three settings, N scenes each, on the first reserved seed of `envs.sealed`:
+seen-10 and seen-20 on the seen objects, and the unseen setting on the sealed objects
+("unseen-sealed-10"). Table II (simulated): the paper's real-world table re-created (the ag-105-145
+gripper, stereo depth, segmented masks; `eval.declutter.SETTINGS`) for the methods of its Table II, on
+the same seed: real-similar on the seen objects, real-novel on the sealed ones ("real-novel-unseen-sealed").
+This module is the only caller of `run_benchmark(..., for_report=True)`; development runs use
+`sgjax declutter` on other seeds (seed 0 is the development seed of the docs).
 
-Rows run one method after another in `METHODS` order (the methods the README compares first) so that
+Rows run one method after another in the table's order (the methods the README compares first) so that
 an interrupted report has whole rows; each run resumes from its logs. A method that cannot run here
 (contact-graspnet without its environment) is skipped and named. Each invocation's code commit and
 shipped checkpoints are kept in DIR/provenance.json (`record_provenance`), so a report names what made it.
@@ -14,6 +17,7 @@ shipped checkpoints are kept in DIR/provenance.json (`record_provenance`), so a 
 
 from __future__ import annotations
 
+import dataclasses
 import datetime
 import json
 import os
@@ -44,14 +48,34 @@ METHODS = (
 SETTINGS = (("seen-10", None), ("seen-20", None), ("unseen-10", sealed.SEALED_OBJECT_SET))
 SEED = sealed.RESERVED_SEEDS[0]
 PROVENANCE = "provenance.json"  # in the report's directory: what each invocation ran with
-NETWORKS = {"ernet_default": checkpoint.ERNET_DEFAULT_DIR, "pointnetgpd_default": checkpoint.POINTNETGPD_DEFAULT_DIR}
+
+
+@dataclasses.dataclass(frozen=True)
+class ReportTable:
+    """One table of the report: its methods (in the order they run) and settings ((setting, object set
+    replacing the setting's own or None), in order)."""
+
+    name: str
+    methods: tuple[str, ...]
+    settings: tuple[tuple[str, str | None], ...]
+
+
+TABLE_I = ReportTable("Table I", METHODS, SETTINGS)
+# The paper's Table II compares these four on its real robot; novel objects are the sealed ones here too.
+TABLE_II = ReportTable("Table II (simulated)", ("supergrasp", "s1+pointnetgpd", "pointnetgpd", "contact-graspnet"),
+                       (("real-similar", None), ("real-novel", sealed.SEALED_OBJECT_SET)))
+
+
+def shipped_networks() -> dict[str, Path]:
+    """Every network shipped in `sgjax/models/` (a directory holding checkpoints) by its name."""
+    return {d.name: d for d in sorted(checkpoint.MODELS_DIR.iterdir()) if (d / checkpoint.CHECKPOINT_DIR).is_dir()}
 
 
 def provenance() -> dict[str, Any]:
     """What the report runs with now: {"commit": `code_commit()`, "checkpoints": {name: {"recipe_sha256",
     "trained_at"}}} for each shipped network (None where its meta records no recipe or commit)."""
     nets = {}
-    for name, directory in NETWORKS.items():
+    for name, directory in shipped_networks().items():
         meta = checkpoint.read_meta(directory)
         nets[name] = {"recipe_sha256": (meta.get("recipe") or {}).get("sha256"),
                       "trained_at": (meta.get("commit") or {}).get("sha")}
@@ -79,17 +103,19 @@ def record_provenance(out: str | os.PathLike, say: Callable[[str], None] = print
     return entries
 
 
-def run_table_i(
+def run_table(
     out: str | os.PathLike,
+    table: ReportTable = TABLE_I,
     scenes: int = 30,
-    methods: Sequence[str] = METHODS,
+    methods: Sequence[str] | None = None,
     progress: bool = True,
     say: Callable[[str], None] = print,
 ) -> tuple[list[BenchmarkResult], list[str]]:
-    """Run (or continue) the report into `out` -> (results, methods skipped with the reason).
-    An unknown method raises `eval.methods.UnknownMethod` before any run."""
+    """Run (or continue) the report's `table` into `out` -> (results, methods skipped with the reason).
+    methods: a subset of the table's (None: all of them). An unknown method raises
+    `eval.methods.UnknownMethod` before any run."""
     results, skipped, runnable = [], [], []
-    for method in methods:  # every name checked first: a typo fails now, not after hours of runs
+    for method in table.methods if methods is None else methods:  # all checked first: a typo fails now, not hours on
         try:
             check_method(method)
             runnable.append(method)
@@ -99,7 +125,7 @@ def run_table_i(
     if runnable:
         record_provenance(out, say)
     for method in runnable:
-        for setting, objects in SETTINGS:
+        for setting, objects in table.settings:
             result = run_benchmark(method, setting=setting, scenes=scenes, seed=SEED, out=out, objects=objects,
                                    progress=progress, for_report=True)
             s = result.summary
