@@ -291,6 +291,8 @@ def test_the_planner_takes_the_checkpoint_shipped_for_its_gripper(trained, small
     from sgjax.planner import Planner
     from sgjax.stage2 import checkpoint
 
+    for preset, shipped in (("ag-105-145", "ernet_ag-105-145"), (ROBOTIQ, "ernet_default"), ("default", "ernet_default")):
+        assert checkpoint.shipped_dir(checkpoint.ERNET_DEFAULT_DIR, load_gripper(preset)) == checkpoint.MODELS_DIR / shipped
     _, _, run = trained
     models = tmp_path / "models"
     shutil.copytree(checkpoint.ERNET_DEFAULT_DIR / checkpoint.CHECKPOINT_DIR, models / "ernet_default" / checkpoint.CHECKPOINT_DIR)
