@@ -26,11 +26,11 @@ from pathlib import Path
 from typing import Any
 
 from envs import sealed
-from eval.benchmark import BenchmarkResult, run_benchmark
-from eval.methods import MethodUnavailable, check_method
-from sgjax.stage2 import checkpoint
 from sgjax.utils.files import atomic_write_text
 from sgjax.utils.provenance import code_commit
+
+# The benchmark, the method registry and the checkpoints are imported where used: the command line reads
+# this module's tables to build its parser, and every command would pay for them.
 
 METHODS = (
     "supergrasp",
@@ -68,12 +68,16 @@ TABLE_II = ReportTable("Table II (simulated)", ("supergrasp", "s1+pointnetgpd", 
 
 def shipped_networks() -> dict[str, Path]:
     """Every network shipped in `sgjax/models/` (a directory holding checkpoints) by its name."""
+    from sgjax.stage2 import checkpoint
+
     return {d.name: d for d in sorted(checkpoint.MODELS_DIR.iterdir()) if (d / checkpoint.CHECKPOINT_DIR).is_dir()}
 
 
 def provenance() -> dict[str, Any]:
     """What the report runs with now: {"commit": `code_commit()`, "checkpoints": {name: {"recipe_sha256",
     "trained_at"}}} for each shipped network (None where its meta records no recipe or commit)."""
+    from sgjax.stage2 import checkpoint
+
     nets = {}
     for name, directory in shipped_networks().items():
         meta = checkpoint.read_meta(directory)
@@ -110,10 +114,14 @@ def run_table(
     methods: Sequence[str] | None = None,
     progress: bool = True,
     say: Callable[[str], None] = print,
-) -> tuple[list[BenchmarkResult], list[str]]:
-    """Run (or continue) the report's `table` into `out` -> (results, methods skipped with the reason).
+) -> tuple[list, list[str]]:
+    """Run (or continue) the report's `table` into `out` -> (results: `eval.benchmark.BenchmarkResult`s, methods
+    skipped with the reason).
     methods: a subset of the table's (None: all of them). An unknown method raises
     `eval.methods.UnknownMethod` before any run."""
+    from eval.benchmark import run_benchmark
+    from eval.methods import MethodUnavailable, check_method
+
     results, skipped, runnable = [], [], []
     for method in table.methods if methods is None else methods:  # all checked first: a typo fails now, not hours on
         try:

@@ -22,7 +22,6 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-import trimesh
 
 from sgjax.geometry.gripper import GripperSpec, finger_stops
 
@@ -70,6 +69,8 @@ class TemplateConfig:
 
 def primitive_mesh(p: Primitive) -> trimesh.Trimesh:
     """Watertight mesh of a primitive in its own frame (bounding-box centre at the origin, z up)."""
+    import trimesh  # here: only building a database makes meshes, and a planning process need not import it
+
     a, b, h = p.dims
     if p.family == "cuboid":
         return trimesh.creation.box(extents=(a, b, h))
@@ -87,6 +88,8 @@ def primitive_mesh(p: Primitive) -> trimesh.Trimesh:
 
 def surface_points(p: Primitive, count: int, seed: int = 0) -> np.ndarray:
     """Points uniform in area on the primitive's surface: -> [count, 3] (deterministic in seed)."""
+    import trimesh
+
     points, _ = trimesh.sample.sample_surface(primitive_mesh(p), count, seed=seed)
     return np.asarray(points, np.float64)
 
