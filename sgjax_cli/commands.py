@@ -650,7 +650,7 @@ def _plan_cloud(args: argparse.Namespace) -> int:
     if t.get("compiled"):
         timing += " (includes compilation)"
     if args.json:
-        print(json.dumps(plan.to_dict()))
+        print(json.dumps({**plan.to_dict(), "checkpoint": planner.checkpoint}))
     elif plan.kind is None:
         print(f"no grasp: {plan.reason}  ({plan.n_candidates} candidates)")
         print(f"  {timing}")
@@ -661,6 +661,8 @@ def _plan_cloud(args: argparse.Namespace) -> int:
               f"of {len(plan.scores['eval_prob'])} scored ({plan.n_candidates} from Stage 1)")
         print(f"  position {pos}  approach {app}  width {plan.width:.4f} m")
         print(f"  {timing}")
+    if not args.json:
+        print(f"  E-RNet checkpoint: {planner.checkpoint}")
     if args.png:
         from sgjax.draw import draw_grasps
 
@@ -694,15 +696,15 @@ def _read_file(path: str, what: str, read):
         raise ValueError(f"{path}: cannot read the {what} ({message})") from None
 
 
-def _frame_json(frame, result, timing: dict) -> dict:
-    """The depth form's JSON document (README, docs/real-camera.md)."""
+def _frame_json(frame, result, timing: dict, checkpoint: str) -> dict:
+    """The depth form's JSON document (README, docs/real-camera.md); checkpoint: `Planner.checkpoint`."""
     import numpy as np
 
     objects = [{"id": i, "points": int(np.sum(frame.labels == i)),
                 "centroid": np.round(frame.object_points(i).mean(0), 6).tolist()} for i in frame.object_ids]
     reasons = {str(key): why for key, why in result.reasons.items()}
     return {"frame": frame.frame, "table": [round(float(v), 6) for v in frame.table.plane], "objects": objects,
-            "grasps": [g.to_dict() for g in result.grasps], "reasons": reasons, "timing": timing}
+            "grasps": [g.to_dict() for g in result.grasps], "reasons": reasons, "checkpoint": checkpoint, "timing": timing}
 
 
 def _plan_frame(args: argparse.Namespace) -> int:
@@ -792,9 +794,10 @@ def _plan_frame(args: argparse.Namespace) -> int:
     timing["total_s"] = round(time.perf_counter() - start, 4)
 
     if args.json:
-        print(json.dumps(_frame_json(frame, result, timing)))
+        print(json.dumps(_frame_json(frame, result, timing, planner.checkpoint)))
     else:
         _print_frame_plan(frame, result, timing)
+        print(f"  E-RNet checkpoint: {planner.checkpoint}")
         if wrote:
             print(f"wrote {wrote}")
     return 0 if result.grasps else 1

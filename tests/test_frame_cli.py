@@ -94,6 +94,7 @@ def test_plan_depth_in_camera_and_world_frames(frame_dir, capsys):
         assert len(doc["grasps"]) == 1 and doc["grasps"][0]["kind"] in ("evaluated", "refined") and not doc["reasons"]
         assert_grasps_on_their_objects(doc, frame)
         assert {"perception_s", "plan_s", "stage1_s", "stage2_s", "total_s", "compiled"} <= set(doc["timing"])
+        assert doc["checkpoint"] == "sgjax/models/ernet_default"  # the E-RNet shipped for the default gripper
     # The same grasp, once in the camera's coordinates and once in the world's.
     T = np.array(json.loads((frame_dir / "extrinsics.json").read_text())["T"])
     (c,), (w,) = camera["grasps"], world["grasps"]
@@ -113,6 +114,7 @@ def test_plan_depth_in_camera_and_world_frames(frame_dir, capsys):
     assert main(["plan", *base, "--small-db"]) == 0
     out = capsys.readouterr().out
     assert "camera frame" in out and f"object {c['object']}:" in out and "center" in out and "timing" in out
+    assert "E-RNet checkpoint: sgjax/models/ernet_default" in out
 
 
 def test_plan_depth_with_masks_all_objects_alternatives_and_a_picture(frame_dir, capsys, tmp_path):
