@@ -398,11 +398,10 @@ class Planner:
         if isinstance(self.model, scorers.Stage1Order):  # no network, so no checkpoint and no gripper to check
             self.checkpoint, self.checkpoint_gripper = scorers.STAGE1_ORDER, None
         else:
-            shipped = checkpoint.shipped_dir(checkpoint.ERNET_DEFAULT_DIR, config.spec)  # model None: this one
-            self.checkpoint = checkpoint.checkpoint_name(model, shipped)
-            self.checkpoint_gripper = checkpoint.model_gripper(model, shipped)
+            known = checkpoint.model_checkpoint(model, checkpoint.ERNET_DEFAULT_DIR, config.spec)
+            self.checkpoint, self.checkpoint_gripper = known
             network = "E-RNet" if isinstance(self.model, ernet.ERNet) else type(self.model).__name__
-            checkpoint.warn_gripper(network, model, checkpoint.ERNET_DEFAULT_DIR, config.spec)
+            checkpoint.warn_gripper(network, model, checkpoint.ERNET_DEFAULT_DIR, config.spec, known=known)
         self._scorer = scorers.scorer_for(self.model)
         if not scorers.has_refinement(self.model):
             if config.use_refinement:

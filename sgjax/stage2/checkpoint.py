@@ -244,12 +244,20 @@ def gripper_mismatch(network: str, checkpoint: str, trained: GripperSpec | None,
             "`sgjax train` on those labels")
 
 
-def warn_gripper(network: str, model, default_dir: Path, spec: GripperSpec, stacklevel: int = 3) -> str | None:
-    """`warnings.warn` the `gripper_mismatch` of the checkpoint behind `model` (None: the one shipped for
-    `spec`, `shipped_dir(default_dir, spec)`; a run directory; a model in memory is never warned about)
-    planning for `spec`; returns the message (None: no warning)."""
-    default_dir = shipped_dir(default_dir, spec)
-    message = gripper_mismatch(network, checkpoint_name(model, default_dir), model_gripper(model, default_dir), spec)
+def model_checkpoint(model, default_dir: Path, spec: GripperSpec) -> tuple[str, GripperSpec | None]:
+    """(`checkpoint_name`, `model_gripper`) of the checkpoint behind `model` for a planner of gripper
+    `spec`: None is the one shipped for `spec` (`shipped_dir(default_dir, spec)`), a run directory itself."""
+    shipped = shipped_dir(default_dir, spec)
+    return checkpoint_name(model, shipped), model_gripper(model, shipped)
+
+
+def warn_gripper(network: str, model, default_dir: Path, spec: GripperSpec, stacklevel: int = 3,
+                 known: tuple[str, GripperSpec | None] | None = None) -> str | None:
+    """`warnings.warn` the `gripper_mismatch` of the checkpoint behind `model` (`model_checkpoint`, or
+    `known` when the caller has it; a model in memory is never warned about) planning for `spec`; returns
+    the message (None: no warning)."""
+    name, trained = model_checkpoint(model, default_dir, spec) if known is None else known
+    message = gripper_mismatch(network, name, trained, spec)
     if message is not None:
         warnings.warn(message, GripperMismatchWarning, stacklevel=stacklevel)
     return message
