@@ -171,10 +171,8 @@ def run_benchmark(
     method: a registered name (`eval.methods.METHODS`) or a Method instance.
     objects: an object set name or a mesh folder replacing the setting's objects; object_assets: the
         assets themselves (tests). n_objects: objects per scene instead of the setting's.
-    The setting's label in logs and tables is "<object set>-<n>" (e.g. seen-10, tiny-4, mymeshes-10), and
-    "@<sensor>+<masks>" after it when the method sees the scene through a sensor (seen-10@realsense+clusters);
-    a setting that fixes its gripper and sensor (real-similar, real-novel) keeps its own name (with the
-    object set's after it when `objects` replaces the setting's: real-novel-mymeshes).
+    The setting's label in logs and tables: `declutter.Setting.label` (seen-10, seen-10@realsense+clusters,
+    real-similar, real-novel-mymeshes).
     pictures: draw the first this many scenes. for_report: the report path's run (`envs.sealed`); other runs
     may not use a reserved seed or the sealed objects (SealedDataError).
     Raises ValueError / UnknownMethod / MethodUnavailable.
@@ -215,10 +213,8 @@ def run_benchmark(
         identity = object_set_identity(label, assets)
     else:
         assets, label, identity = resolve_objects(chosen, objects, progress)
-    setting_label = f"{label}-{n}" + (f"@{config.view}" if config.view else "")
-    if chosen.fixes_hardware and object_assets is None and n_objects is None:
-        # Its gripper and sensor are part of the setting: its name, and the objects' when they replace its own.
-        setting_label = chosen.name if objects is None else f"{chosen.name}-{label}"
+    setting_label = chosen.label(label, n, config.view, replaced=objects is not None,
+                                 custom=object_assets is not None or n_objects is not None)
     # Built before the logs are read: its settings are part of the resume key. The gripper is not among
     # the key's options: the config's part of the key holds it (DeclutterConfig.gripper).
     if instance is None:

@@ -75,6 +75,16 @@ class Setting:
     def fixes_hardware(self) -> bool:
         return (self.gripper, self.sensor, self.masks) != (None, None, None)
 
+    def label(self, objects: str, n_objects: int, view: str = "", replaced: bool = False, custom: bool = False) -> str:
+        """The name of a run of this setting in logs and tables: "<objects>-<n>" (seen-10, tiny-4,
+        mymeshes-10), with "@<view>" after it when the method sees the scene through a sensor
+        (seen-10@realsense+clusters). A setting that fixes its hardware keeps its own name (real-similar),
+        "<name>-<objects>" when `replaced` (its object set replaced by the set `objects`:
+        real-novel-mymeshes), unless `custom` (other assets or another object count: not its scenes)."""
+        if self.fixes_hardware and not custom:
+            return f"{self.name}-{objects}" if replaced else self.name
+        return f"{objects}-{n_objects}" + (f"@{view}" if view else "")
+
 
 # The paper's Table I in simulation, and its real-world Table II re-created as closely as simulation
 # allows: the DH-Robotics AG-105-145 gripper, stereo depth (the paper's ZED 2i) and masks the front end

@@ -740,3 +740,17 @@ def test_the_real_world_settings_fix_their_gripper_sensor_and_masks(tmp_path):
         with pytest.raises(ValueError, match="fixes the gripper"):
             apply_setting(setting, DeclutterConfig(gripper=load_gripper("robotiq-2f85")))
     assert apply_setting(get_setting("seen-10"), DeclutterConfig(sensor="kinect")) == DeclutterConfig(sensor="kinect")
+
+
+def test_a_run_is_named_after_its_setting_objects_and_view():
+    """Logs and tables name a run "<objects>-<n>[@<view>]"; a setting that fixes its hardware keeps its name,
+    with the object set after it when the set replaces its own (the report's real-novel on the sealed set)."""
+    from eval.declutter import get_setting
+
+    assert get_setting("seen-10").label("seen", 10) == "seen-10"
+    assert get_setting("unseen-10").label("mymeshes", 10, replaced=True) == "mymeshes-10"
+    assert get_setting("seen-10").label("seen", 10, "realsense+clusters") == "seen-10@realsense+clusters"
+    real = get_setting("real-novel")
+    assert real.label("unseen", 10, "stereo+clusters") == "real-novel"
+    assert real.label("mymeshes", 10, "stereo+clusters", replaced=True) == "real-novel-mymeshes"
+    assert real.label("unseen", 4, "stereo+clusters", custom=True) == "unseen-4@stereo+clusters"  # not its scenes
