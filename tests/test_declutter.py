@@ -425,6 +425,11 @@ def test_benchmark_resumes_and_writes_tables_and_pictures(tmp_path, objects):
     assert "| oracle-topdown | tiny-2 | 0 |" in (tmp_path / "results.md").read_text()  # the intervals table
     assert "GSR_lo,GSR_hi,TSR_lo,TSR_hi" in csv_text.splitlines()[0]
     assert second.as_dict()["GA"] == second.summary.attempts
+    # README's form of the same numbers (`python -m benchmarks.readme_table DIR`).
+    from benchmarks.readme_table import table
+
+    s = second.summary
+    assert f"| oracle-topdown | {100 * s.gsr:.2f} % / {100 * s.tsr:.2f} % / {s.ga} |" in table(str(tmp_path))
     # A log written under other settings is not silently reused.
     with pytest.raises(ValueError, match="different configuration"):
         run_benchmark("oracle-topdown", scenes=1, **{**args, "config": dataclasses.replace(CONFIG, extra_attempts=2)})
