@@ -632,12 +632,8 @@ def _plan_cloud(args: argparse.Namespace) -> int:
                 f"{args.mask}: the mask must be bool [N] (target) or int [N] (object labels) with N = {len(cloud)} "
                 f"(the cloud's points), got {mask.dtype} {mask.shape}"
             )
-        from sgjax import presets
-        from sgjax.planner import Planner
-
         db = _database(spec, args.small_db, args.db, check=args.gripper is not None)
-        with _warnings_as_notes():  # the checkpoint trained for another gripper: one line
-            planner = Planner(model=args.model, db=db, config=presets.get(args.preset, gripper=spec))
+        planner = _planner(args, spec, db)
         viewpoint = (0.0, 0.0, 0.0) if args.viewpoint is None else tuple(args.viewpoint)
         if mask.dtype == bool:
             plan = planner.plan_masked(cloud, mask, viewpoint, seed=args.seed)
@@ -694,6 +690,28 @@ def _read_file(path: str, what: str, read):
         if message.startswith(path):  # perception's readers name the file first
             raise ValueError(message) from None
         raise ValueError(f"{path}: cannot read the {what} ({message})") from None
+
+
+NO_NETWORK = "none"  # `sgjax plan --model none`: Stage 1's order, no Stage-2 network
+
+
+def _planner(args: argparse.Namespace, spec, db):
+    """The planner of `sgjax plan`: --preset for --gripper's spec, with --model's E-RNet (None: the one
+    shipped for the gripper) or, for `--model none`, no network (Stage 1's order, no refinement). A
+    checkpoint trained for another gripper is warned about in one line."""
+    import dataclasses
+
+    from sgjax import presets
+    from sgjax.planner import Planner
+
+    config = presets.get(args.preset, gripper=spec)
+    model = args.model
+    if model == NO_NETWORK:
+        from sgjax.stage2.scorers import Stage1Order
+
+        model, config = Stage1Order(), dataclasses.replace(config, use_refinement=False)
+    with _warnings_as_notes():  # the checkpoint trained for another gripper: one line
+        return Planner(model=model, db=db, config=config)
 
 
 def _frame_json(frame, result, timing: dict, checkpoint: str) -> dict:
@@ -753,14 +771,11 @@ def _plan_frame(args: argparse.Namespace) -> int:
                      f"table plane {np.round(frame.table.plane, 4).tolist()})")
     perception_s = time.perf_counter() - start
 
-    from sgjax import presets
     from sgjax.grasping import plan_frame
-    from sgjax.planner import Planner
 
     try:
         db = _database(spec, args.small_db, args.db, check=args.gripper is not None)
-        with _warnings_as_notes():  # the checkpoint trained for another gripper: one line
-            planner = Planner(model=args.model, db=db, config=presets.get(args.preset, gripper=spec))
+        planner = _planner(args, spec, db)
         setup_s = time.perf_counter() - start - perception_s
         result = plan_frame(planner, frame, all_objects=args.all_objects, top=top, seed=args.seed)
     except (ValueError, FileNotFoundError) as exc:
@@ -1031,7 +1046,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--all-objects", action="store_true", help="the depth form: a grasp for every object (default: the best one)")
     p.add_argument("--top", type=int, metavar="K",
                    help="the depth form: up to K grasps per planned object, the chosen one and K-1 alternatives (default 1)")
-    p.add_argument("--model", metavar="RUN_DIR", help="an E-RNet `sgjax train` run directory (default: the shipped model)")
+    p.add_argument("--model", metavar="RUN_DIR", help="an E-RNet `sgjax train` run directory (default: the one shipped "
+                   "for the gripper); none: no network, Stage 1's order (better than another gripper's E-RNet, "
+                   "docs/grippers.md)")
     p.add_argument("--preset", default="default", choices=preset_names(),
                    help="the planner's named configuration (sgjax.presets; default: today's SuperGrasp)")
     p.add_argument("--db", help="a primitive database file (default: the cached default database)")
@@ -1257,8 +1274,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     for command, table, what in (
         ("table-i", TABLE_I, "Every Table I method on seen-10, seen-20 and the sealed unseen objects"),
-        ("table-ii", TABLE_II, "Table II re-created in simulation (the ag-105-145 gripper, stereo depth, segmented "
-         "masks): its methods on real-similar and on real-novel with the sealed objects"),
+        ("table-ii", TABLE_II, ("Table II re-created in simulation (the ag-105-145 gripper, stereo depth, segmented "
+                                "masks): its methods on real-similar and on real-novel with the sealed objects")),
     ):
         p = sub.add_parser(
             command,

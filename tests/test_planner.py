@@ -538,7 +538,12 @@ def test_cli_plan(tmp_path, capsys, monkeypatch, small_db):
 
     assert main(["plan", *base, "--mask", str(tmp_path / "mask.npy")]) == 0
     out = capsys.readouterr().out
-    assert "evaluated grasp" in out and "stage 1" in out
+    assert "evaluated grasp" in out and "stage 1" in out and f"E-RNet checkpoint: {run}" in out
+    # --model none: no network, Stage 1's order (its best candidate passes with score 1, nothing refined).
+    no_network = [a if a != str(run) else "none" for a in base]
+    assert main(["plan", *no_network, "--mask", str(tmp_path / "labels.npy"), "--json"]) == 0
+    record = json.loads(capsys.readouterr().out)
+    assert record["checkpoint"] == "none (Stage 1's order)" and record["kind"] == "evaluated" and record["score"] == 1.0
     with pytest.raises(SystemExit):  # argparse names the known presets
         main(["plan", *base, "--mask", str(tmp_path / "mask.npy"), "--preset", "nope"])
     assert "invalid choice: 'nope'" in capsys.readouterr().err

@@ -241,7 +241,8 @@ def gripper_mismatch(network: str, checkpoint: str, trained: GripperSpec | None,
         return None
     return (f"{network} checkpoint {checkpoint} was trained for gripper {describe_gripper(trained, spec)} but plans "
             f"for gripper {describe_gripper(spec, trained)}: retrain with `sgjax label --gripper` and "
-            "`sgjax train` on those labels")
+            "`sgjax train` on those labels, or plan without a network (`--model none`; measured better than "
+            "another gripper's E-RNet: docs/grippers.md)")
 
 
 def model_checkpoint(model, default_dir: Path, spec: GripperSpec) -> tuple[str, GripperSpec | None]:
