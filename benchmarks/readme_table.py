@@ -15,6 +15,8 @@ import argparse
 import csv
 import os
 
+from eval.report import markdown_table
+
 
 def read_csv(path: str) -> list[dict[str, str]]:
     with open(path, newline="") as fh:
@@ -29,8 +31,7 @@ def table(out: str, settings: list[str] | None = None, methods: list[str] | None
     methods = methods or list(dict.fromkeys(r["method"] for r in rows))
     cells = {(r["method"], r["setting"]): r for r in rows}
     counted = len({r["scenes"] for r in rows}) > 1
-    lines = ["| Method | " + " | ".join(settings) + " | planning per grasp (s) |",
-             "|---|" + "---|" * len(settings) + "---:|"]
+    body = []
     for method in methods:
         shown = []
         for setting in settings:
@@ -38,8 +39,8 @@ def table(out: str, settings: list[str] | None = None, methods: list[str] | None
             shown.append("" if r is None else
                          f"{100 * float(r['GSR']):.2f} % / {100 * float(r['TSR']):.2f} % / {int(r['GA'])}"
                          + (f" (N = {r['scenes']})" if counted else ""))
-        lines.append(f"| {method} | " + " | ".join(shown) + f" | {timing.get(method, float('nan')):.2f} |")
-    return "\n".join(lines)
+        body.append([method, *shown, f"{timing.get(method, float('nan')):.2f}"])
+    return markdown_table(["Method", *settings, "planning per grasp (s)"], body)
 
 
 def main() -> None:

@@ -392,8 +392,8 @@ class Planner:
     def __init__(self, model=None, db: PrimitiveDB | None = None, config: PlannerConfig = PlannerConfig()):
         enable_compilation_cache()  # a new process loads what an earlier one compiled
         # PointNetGPD in E-RNet's place is the network ablation (`scorers`): it has no refinement head.
-        network_model = isinstance(model, (pointnetgpd.PointNetGPD, scorers.Stage1Order))
-        self.model = model if network_model else ernet.as_model(model, config.spec)
+        other_scorer = isinstance(model, (pointnetgpd.PointNetGPD, scorers.Stage1Order))
+        self.model = model if other_scorer else ernet.as_model(model, config.spec)
         self.config = config
         if isinstance(self.model, scorers.Stage1Order):  # no network, so no checkpoint and no gripper to check
             self.checkpoint, self.checkpoint_gripper = scorers.STAGE1_ORDER, None
