@@ -76,15 +76,12 @@ def reference_tree(commit: str) -> str:
 def stage1_only_planner(spec, db=None):
     """The planner with no Stage-2 network (`scorers.Stage1Order`, no refinement) for gripper `spec`: the
     default preset's Stage 1, on `db` (None: the database of `spec`, built on first use)."""
-    import dataclasses
-
     from sgjax import presets
-    from sgjax.planner import Planner
+    from sgjax.planner import stage1_order_planner
     from sgjax.stage1.database import DBConfig, load_database
-    from sgjax.stage2.scorers import Stage1Order
 
     db = load_database(DBConfig.for_gripper(spec, False), progress=False) if db is None else db
-    return Planner(Stage1Order(), db, dataclasses.replace(presets.get("default", gripper=spec), use_refinement=False))
+    return stage1_order_planner(db, presets.get("default", gripper=spec))
 
 
 def first_views(setting, config, scenes: int, seed: int) -> list:

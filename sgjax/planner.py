@@ -398,10 +398,10 @@ class Planner:
         if isinstance(self.model, scorers.Stage1Order):  # no network, so no checkpoint and no gripper to check
             self.checkpoint, self.checkpoint_gripper = scorers.STAGE1_ORDER, None
         else:
-            known = checkpoint.model_checkpoint(model, checkpoint.ERNET_DEFAULT_DIR, config.spec)
-            self.checkpoint, self.checkpoint_gripper = known
+            self.checkpoint, self.checkpoint_gripper = checkpoint.model_checkpoint(
+                model, checkpoint.ERNET_DEFAULT_DIR, config.spec)
             network = "E-RNet" if isinstance(self.model, ernet.ERNet) else type(self.model).__name__
-            checkpoint.warn_gripper(network, model, checkpoint.ERNET_DEFAULT_DIR, config.spec, known=known)
+            checkpoint.warn_mismatch(network, self.checkpoint, self.checkpoint_gripper, config.spec)
         self._scorer = scorers.scorer_for(self.model)
         if not scorers.has_refinement(self.model):
             if config.use_refinement:
@@ -844,6 +844,13 @@ class Planner:
             return text + f" and best re-scored refinement {best:.2f} <= {cfg.refine_threshold:g}"
         best_refine = float(scores["refine_prob"][valid].max())
         return text + f" and best refine {best_refine:.2f} <= {cfg.refine_threshold:g}"
+
+
+def stage1_order_planner(db: PrimitiveDB | None = None, config: PlannerConfig = PlannerConfig()) -> Planner:
+    """The planner without a Stage-2 network: Stage 1's candidates in Stage 1's order
+    (`scorers.Stage1Order`), no refinement (`sgjax plan --model none`; measured better than another
+    gripper's E-RNet, docs/grippers.md). db and config as `Planner`'s."""
+    return Planner(scorers.Stage1Order(), db, dataclasses.replace(config, use_refinement=False))
 
 
 def _compile_count() -> int:

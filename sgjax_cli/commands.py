@@ -699,19 +699,14 @@ def _planner(args: argparse.Namespace, spec, db):
     """The planner of `sgjax plan`: --preset for --gripper's spec, with --model's E-RNet (None: the one
     shipped for the gripper) or, for `--model none`, no network (Stage 1's order, no refinement). A
     checkpoint trained for another gripper is warned about in one line."""
-    import dataclasses
-
     from sgjax import presets
-    from sgjax.planner import Planner
+    from sgjax.planner import Planner, stage1_order_planner
 
     config = presets.get(args.preset, gripper=spec)
-    model = args.model
-    if model == NO_NETWORK:
-        from sgjax.stage2.scorers import Stage1Order
-
-        model, config = Stage1Order(), dataclasses.replace(config, use_refinement=False)
+    if args.model == NO_NETWORK:
+        return stage1_order_planner(db, config)
     with _warnings_as_notes():  # the checkpoint trained for another gripper: one line
-        return Planner(model=model, db=db, config=config)
+        return Planner(model=args.model, db=db, config=config)
 
 
 def _frame_json(frame, result, timing: dict, checkpoint: str) -> dict:

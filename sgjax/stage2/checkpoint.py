@@ -252,13 +252,16 @@ def model_checkpoint(model, default_dir: Path, spec: GripperSpec) -> tuple[str, 
     return checkpoint_name(model, shipped), model_gripper(model, shipped)
 
 
-def warn_gripper(network: str, model, default_dir: Path, spec: GripperSpec, stacklevel: int = 3,
-                 known: tuple[str, GripperSpec | None] | None = None) -> str | None:
-    """`warnings.warn` the `gripper_mismatch` of the checkpoint behind `model` (`model_checkpoint`, or
-    `known` when the caller has it; a model in memory is never warned about) planning for `spec`; returns
-    the message (None: no warning)."""
-    name, trained = model_checkpoint(model, default_dir, spec) if known is None else known
+def warn_mismatch(network: str, name: str, trained: GripperSpec | None, spec: GripperSpec,
+                  stacklevel: int = 3) -> str | None:
+    """`warnings.warn` the `gripper_mismatch` of checkpoint `name`, trained for gripper `trained` (None: a
+    model in memory, never warned about), planning for `spec`; returns the message (None: no warning)."""
     message = gripper_mismatch(network, name, trained, spec)
     if message is not None:
         warnings.warn(message, GripperMismatchWarning, stacklevel=stacklevel)
     return message
+
+
+def warn_gripper(network: str, model, default_dir: Path, spec: GripperSpec, stacklevel: int = 3) -> str | None:
+    """`warn_mismatch` for the checkpoint behind `model` (`model_checkpoint`) planning for `spec`."""
+    return warn_mismatch(network, *model_checkpoint(model, default_dir, spec), spec, stacklevel=stacklevel + 1)
