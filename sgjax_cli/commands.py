@@ -693,16 +693,24 @@ def _read_file(path: str, what: str, read):
 
 
 NO_NETWORK = "none"  # `sgjax plan --model none`: Stage 1's order, no Stage-2 network
+ONE_FRAME_STAGE1_SIZES = (4,)  # `sgjax plan`'s Stage-1 batch size (`PlannerConfig.stage1_batch_sizes`)
 
 
 def _planner(args: argparse.Namespace, spec, db):
     """The planner of `sgjax plan`: --preset for --gripper's spec, with --model's E-RNet (None: the one
     shipped for the gripper) or, for `--model none`, no network (Stage 1's order, no refinement). A
     checkpoint trained for another gripper is warned about in one line."""
+    import dataclasses
+
     from sgjax import presets
     from sgjax.planner import Planner, stage1_order_planner
 
     config = presets.get(args.preset, gripper=spec)
+    if not getattr(args, "all_objects", False):
+        # A process that plans a scene once loads one Stage-1 program (objects in chunks of 4, the last
+        # padded) instead of one per chunk size: ~1 s less under load (docs/real-camera.md). Plans per
+        # object (--all-objects) run one object at a time: one program (batch 1) already.
+        config = dataclasses.replace(config, stage1_batch_sizes=ONE_FRAME_STAGE1_SIZES)
     if args.model == NO_NETWORK:
         return stage1_order_planner(db, config)
     with _warnings_as_notes():  # the checkpoint trained for another gripper: one line
