@@ -694,6 +694,7 @@ def _read_file(path: str, what: str, read):
 
 NO_NETWORK = "none"  # `sgjax plan --model none`: Stage 1's order, no Stage-2 network
 ONE_FRAME_STAGE1_SIZES = (4,)  # `sgjax plan`'s Stage-1 batch size (`PlannerConfig.stage1_batch_sizes`)
+ONE_FRAME_STAGE2_SLOTS = 128  # and its smallest Stage-2 batch (`PlannerConfig.stage2_min_slots`)
 
 
 def _planner(args: argparse.Namespace, spec, db):
@@ -708,9 +709,12 @@ def _planner(args: argparse.Namespace, spec, db):
     config = presets.get(args.preset, gripper=spec)
     if not getattr(args, "all_objects", False):
         # A process that plans a scene once loads one Stage-1 program (objects in chunks of 4, the last
-        # padded) instead of one per chunk size: ~1 s less under load (docs/real-camera.md). Plans per
-        # object (--all-objects) run one object at a time: one program (batch 1) already.
-        config = dataclasses.replace(config, stage1_batch_sizes=ONE_FRAME_STAGE1_SIZES)
+        # padded) instead of one per chunk size, and Stage 2 scores in batches of at least 128, so that the
+        # robust choice's re-score (<= 64 rows) runs in the first scoring's program when that took <= 128:
+        # fewer programs to load, the same scores (docs/real-camera.md). Plans per object (--all-objects)
+        # run one object at a time: one Stage-1 program (batch 1) already.
+        config = dataclasses.replace(config, stage1_batch_sizes=ONE_FRAME_STAGE1_SIZES,
+                                     stage2_min_slots=ONE_FRAME_STAGE2_SLOTS)
     if args.model == NO_NETWORK:
         return stage1_order_planner(db, config)
     with _warnings_as_notes():  # the checkpoint trained for another gripper: one line
