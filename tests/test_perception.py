@@ -135,3 +135,23 @@ def test_the_table_is_found_with_its_normal_towards_the_camera(seed):
     assert fit_table(points, seed=seed).plane == table.plane  # the same seed, the same plane
     with pytest.raises(ValueError, match="at least 3 finite points"):
         fit_table(points[:2])
+
+
+def test_the_front_end_runs_blas_on_one_thread_and_gives_it_back():
+    """`one_blas_thread` (what Frame.from_depth runs in) holds every loaded BLAS to one thread and
+    restores the previous counts on exit, also when the body raises."""
+    from threadpoolctl import threadpool_info
+
+    from sgjax.utils.threads import one_blas_thread
+
+    def blas() -> list[int]:
+        return [lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"]
+
+    np.ones((64, 3)) @ np.ones((3, 3))  # NumPy's BLAS is loaded
+    before = blas()
+    assert before
+    with pytest.raises(RuntimeError):
+        with one_blas_thread():
+            assert blas() == [1] * len(before)
+            raise RuntimeError("inside")
+    assert blas() == before

@@ -24,6 +24,7 @@ from sgjax.perception.depth import back_project, read_depth
 from sgjax.perception.segment import (OTHER, TABLE, SegmentConfig, height_threshold, plane_basis, segment_objects,
                                       table_noise)
 from sgjax.perception.table import TablePlane, fit_table
+from sgjax.utils.threads import one_blas_thread
 
 MIN_TABLE_SHARE = 0.05  # a plane holding fewer of the frame's points is not taken for the table
 PLAUSIBLE_DEPTH = (0.1, 10.0)  # metres: a median depth outside this looks like a wrong depth_scale
@@ -104,6 +105,15 @@ class Frame:
         camera-to-world [4, 4] or a file. masks: None (cluster the points above the table), or instance
         ids [H, W] (0 = background) or a PNG of them. workspace: None, or bool [H, W] (or a PNG, nonzero
         = in) of the pixels to use. seed: the table fit's. -> Frame; PerceptionError for unusable input."""
+        # The front end's matrix products are thin ([N, 3] by [3, k]): BLAS threads gain nothing on them and,
+        # beside other busy processes, spin and wait (a frame's whole front end 3.4x slower beside three
+        # jobs; docs/real-camera.md), so it runs on one.
+        with one_blas_thread():
+            return cls._from_depth(depth, intrinsics, depth_scale, extrinsics, masks, workspace, segment, seed)
+
+    @classmethod
+    def _from_depth(cls, depth, intrinsics, depth_scale: float, extrinsics, masks, workspace, segment: SegmentConfig,
+                    seed: int) -> Frame:
         scaled = _is_path(depth) and str(depth).lower().endswith(".png") or np.asarray(depth).dtype.kind in "ui"
         depth = _depth(depth, depth_scale)
         if not isinstance(intrinsics, Intrinsics):
