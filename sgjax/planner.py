@@ -374,6 +374,20 @@ class _Scored:
     thresholds: np.ndarray
 
 
+@functools.partial(jax.jit, static_argnums=(1, 2))
+def _perturbed_jit(poses, shift: float, angle_deg: float):
+    return gripper.perturbed_poses(poses, shift, angle_deg)
+
+
+def _perturbed_poses(poses: np.ndarray, robust: RobustChoice) -> np.ndarray:
+    """`gripper.perturbed_poses` of t <= robust.top poses [t, 4, 4] -> [t, 5, 4, 4], as one program of
+    robust.top rows (padded): run eagerly, its fifteen small operations each compiled or loaded per t."""
+    t = len(poses)
+    rows = np.tile(np.eye(4, dtype=np.float32), (robust.top, 1, 1))
+    rows[:t] = poses
+    return np.asarray(_perturbed_jit(rows, robust.shift, robust.angle_deg), np.float32)[:t]
+
+
 class Planner:
     """Stage 1 + Stage 2 with the database and the E-RNet weights on the device.
 
@@ -727,8 +741,7 @@ class Planner:
         cfg, scores = self.config, s.scores
 
         def judge(index):
-            perturbed = np.asarray(gripper.perturbed_poses(s.poses[index], cfg.robust.shift, cfg.robust.angle_deg),
-                                   np.float32)
+            perturbed = _perturbed_poses(s.poses[index], cfg.robust)
             n = perturbed.shape[0] * PERTURBATIONS
             slots = cfg.stage2_slots(n)  # a Stage-2 batch size, so that no plan compiles
             pad_poses, pad_widths = policy.padded_batch(perturbed.reshape(n, 4, 4), np.repeat(s.widths[index], PERTURBATIONS),
