@@ -239,9 +239,8 @@ def segment_objects(points: np.ndarray, pixels: np.ndarray, image_size: tuple[in
     # Lone pixels above the table (the noise's tail) are no object: only 8x8-pixel blocks holding at
     # least min_points / 8 of them count, so that the box looked at below is the objects', not the frame's.
     blocks = pixels[above] // 8
-    block_count = np.zeros(tuple(np.asarray(image_size) // 8 + 1), np.int64)
-    np.add.at(block_count, (blocks[:, 0], blocks[:, 1]), 1)
-    above[above] = block_count[blocks[:, 0], blocks[:, 1]] >= max(1, config.min_points // 8)
+    block_index = blocks[:, 0] * (image_size[1] // 8 + 1) + blocks[:, 1]
+    above[above] = np.bincount(block_index)[block_index] >= max(1, config.min_points // 8)
     if not above.any():
         return labels
     # Only the box of image rows and columns around the points above the table is looked at.
@@ -257,10 +256,12 @@ def segment_objects(points: np.ndarray, pixels: np.ndarray, image_size: tuple[in
     member = np.zeros(tuple(hi - lo), bool)
     member[above_pixels[:, 0], above_pixels[:, 1]] = True
     normals = smooth_normals(image, valid, viewpoint, config.normal_window, config.normal_span)
-    tolerance = link_tolerance(np.linalg.norm(image - np.asarray(viewpoint, np.float32), axis=-1), pixel_angle, noise,
-                               config).astype(np.float32)
+    ray = image - np.asarray(viewpoint, np.float32)
+    tolerance = link_tolerance(np.sqrt(_dot(ray, ray)), pixel_angle, noise, config).astype(np.float32)
     components = image_clusters(image, member, normals, tolerance, config.concave_deg, config.normal_span)
-    _, cluster = np.unique(components[above_pixels[:, 0], above_pixels[:, 1]], return_inverse=True)
+    # first: each cluster's first point (row-major pixel order), for a deterministic numbering below.
+    _, first, cluster = np.unique(components[above_pixels[:, 0], above_pixels[:, 1]], return_index=True,
+                                  return_inverse=True)
     cluster = cluster.reshape(-1)
     sizes = np.bincount(cluster)
     level = np.zeros(member.shape)
@@ -268,9 +269,7 @@ def segment_objects(points: np.ndarray, pixels: np.ndarray, image_size: tuple[in
     below = _continues_below(image, valid, member, level, normals, tolerance, threshold, table.normal, config.normal_span)
     grounded = np.bincount(cluster, weights=below[above_pixels[:, 0], above_pixels[:, 1]], minlength=len(sizes)) == 0
     kept = np.flatnonzero((sizes >= config.min_points) & grounded)
-    # Largest first; ties by the first point (row-major pixel order), so the numbering is deterministic.
-    first = np.full(len(sizes), len(cluster))
-    np.minimum.at(first, cluster, np.arange(len(cluster)))
+    # Largest first; ties by the first point, so the numbering is deterministic.
     order = kept[np.lexsort((first[kept], -sizes[kept]))]
     new_id = np.full(len(sizes), OTHER, np.int32)
     new_id[order] = np.arange(1, len(order) + 1, dtype=np.int32)
