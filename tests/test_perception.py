@@ -155,3 +155,23 @@ def test_the_front_end_runs_blas_on_one_thread_and_gives_it_back():
             assert blas() == [1] * len(before)
             raise RuntimeError("inside")
     assert blas() == before
+
+
+def test_point_in_convex_polygon_matches_every_edges_half_plane():
+    """`in_convex_polygon`'s one-edge test (the wedge facing each point) against the definition: inside
+    a counter-clockwise convex polygon <=> on the left of every edge."""
+    from scipy.spatial import ConvexHull
+
+    from sgjax.perception.segment import in_convex_polygon
+
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        cloud = rng.normal(size=(int(rng.integers(3, 200)), 2)) * rng.uniform(0.1, 2.0, 2) + rng.normal(size=2)
+        corners = cloud[ConvexHull(cloud).vertices]
+        points = rng.normal(size=(2000, 2)) * 2.0 + corners.mean(0)
+        edges = np.roll(corners, -1, 0) - corners
+        left = (edges[:, 0] * (points[:, None, 1] - corners[:, 1]) - edges[:, 1] * (points[:, None, 0] - corners[:, 0]))
+        expected = np.all(left >= 0, axis=1)
+        got = in_convex_polygon(points, corners)
+        assert got.any() and (~got).any()
+        np.testing.assert_array_equal(got, expected)

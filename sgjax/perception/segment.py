@@ -125,11 +125,23 @@ def table_extent(table_points: np.ndarray, normal: np.ndarray, cell: float = 0.0
 def over_table(points: np.ndarray, corners: np.ndarray, normal: np.ndarray) -> np.ndarray:
     """Which points [N, 3], dropped along normal [3], fall inside the table's extent (`table_extent`'s
     corners [C, 2]) -> bool [N]."""
-    from matplotlib.path import Path
-
     if len(corners) < 3 or not len(points):
         return np.zeros(len(points), bool)
-    return Path(corners).contains_points(points @ plane_basis(normal).T)
+    return in_convex_polygon(points @ plane_basis(normal).T, corners)
+
+
+def in_convex_polygon(points: np.ndarray, corners: np.ndarray) -> np.ndarray:
+    """Which 2-D points [N, 2] lie inside (or on) the convex polygon of corners [C, 2] (counter-clockwise,
+    C >= 3) -> bool [N]. Each point is tested against the one edge facing it from the corners' mean (its
+    wedge, by a binary search on the angle about it): N log C, where a general point-in-polygon test costs
+    N x C (a table's extent has tens of corners)."""
+    centre = corners.mean(0)  # inside a convex polygon
+    angle = np.arctan2(corners[:, 1] - centre[1], corners[:, 0] - centre[0])
+    start = int(np.argmin(angle))  # counter-clockwise from the smallest angle: increasing angles
+    corners, angle = np.roll(corners, -start, 0), np.roll(angle, -start)
+    wedge = np.searchsorted(angle, np.arctan2(points[:, 1] - centre[1], points[:, 0] - centre[0]), side="right") - 1
+    a, b = corners[wedge], corners[(wedge + 1) % len(corners)]  # wedge -1: between the last corner and the first
+    return (b[:, 0] - a[:, 0]) * (points[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (points[:, 0] - a[:, 0]) >= 0
 
 
 def point_image(points: np.ndarray, pixels: np.ndarray, image_size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
