@@ -380,8 +380,8 @@ def _perturbed_jit(poses, shift: float, angle_deg: float):
 
 
 def _perturbed_poses(poses: np.ndarray, robust: RobustChoice) -> np.ndarray:
-    """`gripper.perturbed_poses` of t <= robust.top poses [t, 4, 4] -> [t, 5, 4, 4], as one program of
-    robust.top rows (padded): run eagerly, its fifteen small operations each compiled or loaded per t."""
+    """`gripper.perturbed_poses` of t <= robust.top poses [t, 4, 4] -> [t, 5, 4, 4], as one jitted program
+    of robust.top rows (padded); eagerly, its fifteen small operations were each compiled or loaded per t."""
     t = len(poses)
     rows = np.tile(np.eye(4, dtype=np.float32), (robust.top, 1, 1))
     rows[:t] = poses

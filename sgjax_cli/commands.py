@@ -633,7 +633,7 @@ def _plan_cloud(args: argparse.Namespace) -> int:
                 f"(the cloud's points), got {mask.dtype} {mask.shape}"
             )
         db = _database(spec, args.small_db, args.db, check=args.gripper is not None)
-        planner = _planner(args, spec, db)
+        planner = _planner(args, spec, db, per_object=mask.dtype == bool)
         viewpoint = (0.0, 0.0, 0.0) if args.viewpoint is None else tuple(args.viewpoint)
         if mask.dtype == bool:
             plan = planner.plan_masked(cloud, mask, viewpoint, seed=args.seed)
@@ -697,22 +697,23 @@ ONE_FRAME_STAGE1_SIZES = (4,)  # `sgjax plan`'s Stage-1 batch size (`PlannerConf
 ONE_FRAME_STAGE2_SLOTS = 128  # and its smallest Stage-2 batch (`PlannerConfig.stage2_min_slots`)
 
 
-def _planner(args: argparse.Namespace, spec, db):
+def _planner(args: argparse.Namespace, spec, db, per_object: bool):
     """The planner of `sgjax plan`: --preset for --gripper's spec, with --model's E-RNet (None: the one
     shipped for the gripper) or, for `--model none`, no network (Stage 1's order, no refinement). A
-    checkpoint trained for another gripper is warned about in one line."""
+    checkpoint trained for another gripper is warned about in one line. per_object: the process plans
+    one object at a time (a target mask, --all-objects), not whole scenes."""
     import dataclasses
 
     from sgjax import presets
     from sgjax.planner import Planner, stage1_order_planner
 
     config = presets.get(args.preset, gripper=spec)
-    if not getattr(args, "all_objects", False):
+    if not per_object:
         # A process that plans a scene once loads one Stage-1 program (objects in chunks of 4, the last
         # padded) instead of one per chunk size, and Stage 2 scores in batches of at least 128, so that the
         # robust choice's re-score (<= 64 rows) runs in the first scoring's program when that took <= 128:
-        # fewer programs to load, the same scores (docs/real-camera.md). Plans per object (--all-objects)
-        # run one object at a time: one Stage-1 program (batch 1) already.
+        # fewer programs to load, the same scores (docs/real-camera.md). Plans of one object run Stage 1
+        # at batch 1, one program already (padded to 4 they took 1.1x as long).
         config = dataclasses.replace(config, stage1_batch_sizes=ONE_FRAME_STAGE1_SIZES,
                                      stage2_min_slots=ONE_FRAME_STAGE2_SLOTS)
     if args.model == NO_NETWORK:
@@ -782,7 +783,7 @@ def _plan_frame(args: argparse.Namespace) -> int:
 
     try:
         db = _database(spec, args.small_db, args.db, check=args.gripper is not None)
-        planner = _planner(args, spec, db)
+        planner = _planner(args, spec, db, per_object=args.all_objects)
         setup_s = time.perf_counter() - start - perception_s
         result = plan_frame(planner, frame, all_objects=args.all_objects, top=top, seed=args.seed)
     except (ValueError, FileNotFoundError) as exc:
