@@ -175,3 +175,51 @@ def test_point_in_convex_polygon_matches_every_edges_half_plane():
         got = in_convex_polygon(points, corners)
         assert got.any() and (~got).any()
         np.testing.assert_array_equal(got, expected)
+
+
+def test_image_clusters_match_the_definition_pair_by_pair():
+    """`image_clusters` (links labelled on a grid of twice the resolution) against its definition,
+    written out pixel pair by pair with a union-find: the same partition of the member pixels, with and
+    without the crease test."""
+    from sgjax.perception.segment import image_clusters, smooth_normals
+
+    rng = np.random.default_rng(5)
+    h, w, span = 23, 31, 2
+    for trial in range(6):
+        # Two tilted planes at different depths with noise: some steps link, some do not, some creases bend.
+        yy, xx = np.mgrid[:h, :w].astype(np.float32)
+        depth = np.where(xx < w // 2, 1.0 + 0.01 * yy, 1.05 - 0.02 * xx / w) + rng.normal(0, 0.002, (h, w))
+        image = np.stack([xx * 0.003, yy * 0.003, depth], -1).astype(np.float32)
+        member = rng.random((h, w)) < 0.8
+        normals = smooth_normals(image, np.ones((h, w), bool), np.zeros(3), 3, span)
+        tolerance = np.full((h, w), 0.004, np.float32)
+        for concave_deg in (30.0, 180.0):
+            got = image_clusters(image, member, normals, tolerance, concave_deg, span)
+            parent = list(range(h * w))
+
+            def find(i):
+                while parent[i] != i:
+                    parent[i] = parent[parent[i]]
+                    i = parent[i]
+                return i
+
+            for r in range(h):
+                for c in range(w):
+                    for dr, dc in ((0, 1), (1, 0)):
+                        r2, c2 = r + dr, c + dc
+                        if r2 >= h or c2 >= w or not (member[r, c] and member[r2, c2]):
+                            continue
+                        if np.sum((image[r, c] - image[r2, c2]) ** 2) > tolerance[r, c] ** 2:
+                            continue
+                        ra, ca = min(max(r - dr * span, 0), h - 1), min(max(c - dc * span, 0), w - 1)
+                        rb, cb = min(r2 + dr * span, h - 1), min(c2 + dc * span, w - 1)
+                        na, nb = normals[ra, ca], normals[rb, cb]
+                        if na @ nb < np.cos(np.deg2rad(concave_deg)) and (na - nb) @ (image[ra, ca] - image[rb, cb]) < 0:
+                            continue
+                        parent[find(r * w + c)] = find(r2 * w + c2)
+            expected = np.array([find(i) for i in range(h * w)]).reshape(h, w)
+            assert np.array_equal(got >= 0, member)
+            pairs = {(int(a), int(b)) for a, b in zip(got[member], expected[member])}
+            # One-to-one: each found component is one expected component and back.
+            assert len(pairs) == len({a for a, _ in pairs}) == len({b for _, b in pairs}), (trial, concave_deg)
+            assert 1 < len(pairs) < member.sum()

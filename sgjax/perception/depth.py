@@ -58,8 +58,15 @@ def back_project(depth: np.ndarray, intrinsics: Intrinsics, min_depth: float = 0
     if intrinsics.width is not None and (intrinsics.width, intrinsics.height) != (w, h):
         raise ValueError(f"the depth image is {w}x{h} pixels but the intrinsics are for "
                          f"{intrinsics.width}x{intrinsics.height}")
-    v, u = np.nonzero(np.isfinite(depth) & (depth > min_depth) & (depth <= max_depth))
-    z = depth[v, u]
-    points = np.stack([z * (u - intrinsics.cx) / intrinsics.fx, z * (v - intrinsics.cy) / intrinsics.fy, z], axis=1)
-    return points, np.stack([v, u], axis=1)
+    # Flat indices and whole columns: NumPy gathers and fills narrow [N, 3] arrays a column at a time faster.
+    index = np.flatnonzero(np.isfinite(depth) & (depth > min_depth) & (depth <= max_depth))
+    v, u = np.divmod(index, w)
+    z = depth.reshape(-1)[index]
+    points = np.empty((len(index), 3))
+    points[:, 0] = z * (u - intrinsics.cx) / intrinsics.fx
+    points[:, 1] = z * (v - intrinsics.cy) / intrinsics.fy
+    points[:, 2] = z
+    pixels = np.empty((len(index), 2), index.dtype)
+    pixels[:, 0], pixels[:, 1] = v, u
+    return points, pixels
 

@@ -104,9 +104,11 @@ def table_extent(table_points: np.ndarray, normal: np.ndarray, cell: float = 0.0
         return np.zeros((0, 2))
     # 50k of a frame's table points still mark every cell (a far 5 mm cell holds a few pixels).
     flat = table_points[:: max(1, len(table_points) // 50000)] @ plane_basis(normal).T
-    cells = np.floor((flat - flat.min(0)) / cell).astype(np.int64)
-    occupied = np.zeros(cells.max(0) + 1, bool)
-    occupied[cells[:, 0], cells[:, 1]] = True
+    # A column at a time: NumPy reduces over the long axis of an [N, 2] array some 30x slower.
+    origin = np.array([flat[:, 0].min(), flat[:, 1].min()])
+    cell_row, cell_col = (np.floor((flat[:, k] - origin[k]) / cell).astype(np.int64) for k in range(2))
+    occupied = np.zeros((cell_row.max() + 1, cell_col.max() + 1), bool)
+    occupied[cell_row, cell_col] = True
     pieces, _ = label(occupied, structure=np.ones((3, 3)))
     sizes = np.bincount(pieces.ravel())[1:]
     table = np.isin(pieces, np.flatnonzero(sizes >= 0.1 * sizes.max()) + 1)
@@ -115,7 +117,7 @@ def table_extent(table_points: np.ndarray, normal: np.ndarray, cell: float = 0.0
     first = np.argmax(table[rows], axis=1)
     last = table.shape[1] - 1 - np.argmax(table[rows, ::-1], axis=1)
     ends = np.concatenate([np.stack([rows, first], 1), np.stack([rows, last], 1)])
-    corners = (ends + 0.5) * cell + flat.min(0)
+    corners = (ends + 0.5) * cell + origin
     try:
         return corners[ConvexHull(corners).vertices]  # counter-clockwise in 2-D
     except QhullError:  # the table's points on a line: no extent
@@ -144,12 +146,13 @@ def in_convex_polygon(points: np.ndarray, corners: np.ndarray) -> np.ndarray:
     return (b[:, 0] - a[:, 0]) * (points[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (points[:, 0] - a[:, 0]) >= 0
 
 
-def point_image(points: np.ndarray, pixels: np.ndarray, image_size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
-    """points [N, 3] at pixels [N, 2] (row, column) as an image [H, W, 3] and its validity bool [H, W]."""
+def point_image(points: np.ndarray, index: np.ndarray, image_size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """points [N, 3] at flat pixel indices [N] (row x W + column) as an image [H, W, 3] and its validity
+    bool [H, W]."""
     image = np.zeros((*image_size, 3), np.float32)  # float32: a tenth of a micrometre, and half the memory traffic
     valid = np.zeros(image_size, bool)
-    image[pixels[:, 0], pixels[:, 1]] = points
-    valid[pixels[:, 0], pixels[:, 1]] = True
+    image.reshape(-1, 3)[index] = points
+    valid.reshape(-1)[index] = True
     return image, valid
 
 
@@ -160,31 +163,27 @@ def smooth_normals(image: np.ndarray, valid: np.ndarray, viewpoint, window: int,
     from scipy.ndimage import uniform_filter
 
     weight = uniform_filter(valid.astype(np.float32), window)
-    mean = np.stack([uniform_filter(image[..., k] * valid, window) for k in range(3)], -1)
-    mean /= np.maximum(weight, 1e-9)[..., None]
-    du = np.zeros_like(mean)
-    dv = np.zeros_like(mean)
-    du[:, span:-span] = mean[:, 2 * span:] - mean[:, :-2 * span]
-    dv[span:-span] = mean[2 * span:] - mean[:-2 * span]
-    normals = _cross(du, dv)
-    np.negative(normals, out=normals, where=(_dot(normals, np.asarray(viewpoint, np.float32) - image) < 0)[..., None])
-    normals /= np.maximum(np.sqrt(_dot(normals, normals)), 1e-12)[..., None]
-    return normals
+    inverse = 1.0 / np.maximum(weight, 1e-9)
+    # Channel by channel (x, y, z as contiguous [H, W] arrays: some 1.5x faster than [H, W, 3]): the
+    # mean point, its tangents along rows and columns, their cross product.
+    mean = [uniform_filter(np.where(valid, image[..., k], 0), window) * inverse for k in range(3)]
+    du = [np.zeros_like(inverse) for _ in range(3)]
+    dv = [np.zeros_like(inverse) for _ in range(3)]
+    for k in range(3):
+        np.subtract(mean[k][:, 2 * span:], mean[k][:, :-2 * span], out=du[k][:, span:-span])
+        np.subtract(mean[k][2 * span:], mean[k][:-2 * span], out=dv[k][span:-span])
+    n = [du[1] * dv[2] - du[2] * dv[1], du[2] * dv[0] - du[0] * dv[2], du[0] * dv[1] - du[1] * dv[0]]
+    view = np.asarray(viewpoint, np.float32)
+    towards = sum(n[k] * (view[k] - image[..., k]) for k in range(3))
+    length = np.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
+    scale = np.where(towards < 0, np.float32(-1), np.float32(1)) / np.maximum(length, 1e-12)
+    return np.stack([n[k] * scale for k in range(3)], -1)
 
 
 def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """The dot products [...] of two arrays [..., 3] over their last axis (a sum of three products: faster
     than np.sum or np.einsum over an axis of 3)."""
     return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
-
-
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """a x b over the last axis (3) of two float32 arrays [..., 3], as np.cross, without its temporaries."""
-    out = np.empty_like(a)
-    np.subtract(a[..., 1] * b[..., 2], a[..., 2] * b[..., 1], out=out[..., 0])
-    np.subtract(a[..., 2] * b[..., 0], a[..., 0] * b[..., 2], out=out[..., 1])
-    np.subtract(a[..., 0] * b[..., 1], a[..., 1] * b[..., 0], out=out[..., 2])
-    return out
 
 
 def image_clusters(image: np.ndarray, member: np.ndarray, normals: np.ndarray, tolerance: np.ndarray,
@@ -194,36 +193,33 @@ def image_clusters(image: np.ndarray, member: np.ndarray, normals: np.ndarray, t
     crease runs between the surfaces on their two sides (the normals `span` pixels before the first and
     after the second; LCCP's test: (n_a - n_b) . (p_a - p_b) < 0, and the normals more than concave_deg
     apart)."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
+    from scipy.ndimage import label
 
     h, w = member.shape
-    rows, cols = np.nonzero(member)
+    flat_image, flat_normals = image.reshape(-1, 3), normals.reshape(-1, 3)
     cos_concave = np.cos(np.deg2rad(concave_deg))
-    first, second = [], []
+    # The components are labelled on a grid of twice the resolution: pixels at even (row, column), the
+    # link between two neighbours on the cell between them (scipy's `label`, 4-connected: some 2x
+    # faster than a sparse graph's connected components).
+    grid = np.zeros((2 * h - 1, 2 * w - 1), bool)
+    grid[::2, ::2] = member
     for dr, dc in ((0, 1), (1, 0)):
-        ok = (rows + dr < h) & (cols + dc < w)
-        r, c = rows[ok], cols[ok]
-        ok = member[r + dr, c + dc]
-        r, c = r[ok], c[ok]
-        r2, c2 = r + dr, c + dc
-        step = image[r, c] - image[r2, c2]
-        near = _dot(step, step) <= tolerance[r, c] ** 2
-        r, c, r2, c2 = r[near], c[near], r2[near], c2[near]
-        concave = np.zeros(len(r), bool)
+        first, second = np.s_[:h - dr, :w - dc], np.s_[dr:, dc:]
+        step = image[first] - image[second]  # dense over the box: cheaper than gathering the members' points
+        linked = member[first] & member[second] & (_dot(step, step) <= tolerance[first] ** 2)
+        r, c = np.nonzero(linked)
         if cos_concave > -1.0:  # at 180 deg no crease separates (cos < -1 never holds): skip the normals
-            ra, ca = np.clip(r - dr * span, 0, h - 1), np.clip(c - dc * span, 0, w - 1)
-            rb, cb = np.clip(r2 + dr * span, 0, h - 1), np.clip(c2 + dc * span, 0, w - 1)
-            na, nb = normals[ra, ca], normals[rb, cb]
+            a = np.clip(r - dr * span, 0, h - 1) * w + np.clip(c - dc * span, 0, w - 1)
+            b = np.clip(r + dr * (span + 1), 0, h - 1) * w + np.clip(c + dc * (span + 1), 0, w - 1)
+            na, nb = flat_normals[a], flat_normals[b]
             # The convexity test only for the pairs whose normals are more than concave_deg apart.
             bent = np.flatnonzero(_dot(na, nb) < cos_concave)
-            concave[bent] = _dot(na[bent] - nb[bent], image[ra[bent], ca[bent]] - image[rb[bent], cb[bent]]) < 0
-        first.append((r * w + c)[~concave])
-        second.append((r2 * w + c2)[~concave])
-    first, second = np.concatenate(first), np.concatenate(second)
-    graph = coo_matrix((np.ones(len(first), np.int8), (first, second)), shape=(h * w, h * w))
-    _, component = connected_components(graph, directed=False)
-    return np.where(member, component.reshape(h, w), -1)
+            concave = np.zeros(len(r), bool)
+            concave[bent] = _dot(na[bent] - nb[bent], flat_image[a[bent]] - flat_image[b[bent]]) < 0
+            r, c = r[~concave], c[~concave]
+        grid[2 * r + dr, 2 * c + dc] = True
+    components, _ = label(grid)
+    return np.where(member, components[::2, ::2], -1)
 
 
 def segment_objects(points: np.ndarray, pixels: np.ndarray, image_size: tuple[int, int], table: TablePlane,
@@ -250,36 +246,40 @@ def segment_objects(points: np.ndarray, pixels: np.ndarray, image_size: tuple[in
         return labels
     # Lone pixels above the table (the noise's tail) are no object: only 8x8-pixel blocks holding at
     # least min_points / 8 of them count, so that the box looked at below is the objects', not the frame's.
-    blocks = pixels[above] // 8
-    block_index = blocks[:, 0] * (image_size[1] // 8 + 1) + blocks[:, 1]
+    row, col = pixels[:, 0], pixels[:, 1]  # a column at a time: NumPy is slow over narrow [N, 2] arrays
+    block_index = (row[above] // 8) * (image_size[1] // 8 + 1) + col[above] // 8
     above[above] = np.bincount(block_index)[block_index] >= max(1, config.min_points // 8)
     if not above.any():
         return labels
     # Only the box of image rows and columns around the points above the table is looked at.
     margin = config.normal_window + config.normal_span
-    lo = np.maximum(pixels[above].min(0) - margin, 0)
-    hi = np.minimum(pixels[above].max(0) + margin + 1, image_size)
+    above_row, above_col = row[above], col[above]
+    lo = np.maximum(np.array([above_row.min(), above_col.min()]) - margin, 0)
+    hi = np.minimum(np.array([above_row.max(), above_col.max()]) + margin + 1, image_size)
     # Points come in row-major pixel order (`back_project`), so the box's rows are one slice of them.
-    rows = slice(*np.searchsorted(pixels[:, 0], (lo[0], hi[0])))
-    box = np.flatnonzero((pixels[rows, 1] >= lo[1]) & (pixels[rows, 1] < hi[1])) + (rows.start or 0)
-    box_pixels = pixels[box] - lo
-    image, valid = point_image(points[box], box_pixels, tuple(hi - lo))
-    above_pixels = pixels[above] - lo
-    member = np.zeros(tuple(hi - lo), bool)
-    member[above_pixels[:, 0], above_pixels[:, 1]] = True
+    rows = slice(*np.searchsorted(row, (lo[0], hi[0])))
+    box = np.flatnonzero((col[rows] >= lo[1]) & (col[rows] < hi[1])) + (rows.start or 0)
+    size = (int(hi[0] - lo[0]), int(hi[1] - lo[1]))
+
+    # Flat indices in the box: cheaper to gather and scatter with than (row, column) pairs.
+    box_index = (row[box] - lo[0]) * size[1] + (col[box] - lo[1])
+    above_index = (above_row - lo[0]) * size[1] + (above_col - lo[1])
+    image, valid = point_image(points[box], box_index, size)
+    member = np.zeros(size, bool)
+    member.reshape(-1)[above_index] = True
     normals = smooth_normals(image, valid, viewpoint, config.normal_window, config.normal_span)
     ray = image - np.asarray(viewpoint, np.float32)
     tolerance = link_tolerance(np.sqrt(_dot(ray, ray)), pixel_angle, noise, config).astype(np.float32)
     components = image_clusters(image, member, normals, tolerance, config.concave_deg, config.normal_span)
     # first: each cluster's first point (row-major pixel order), for a deterministic numbering below.
-    _, first, cluster = np.unique(components[above_pixels[:, 0], above_pixels[:, 1]], return_index=True,
+    _, first, cluster = np.unique(components.reshape(-1)[above_index], return_index=True,
                                   return_inverse=True)
     cluster = cluster.reshape(-1)
     sizes = np.bincount(cluster)
     level = np.zeros(member.shape)
-    level[box_pixels[:, 0], box_pixels[:, 1]] = height[box]
+    level.reshape(-1)[box_index] = height[box]
     below = _continues_below(image, valid, member, level, normals, tolerance, threshold, table.normal, config.normal_span)
-    grounded = np.bincount(cluster, weights=below[above_pixels[:, 0], above_pixels[:, 1]], minlength=len(sizes)) == 0
+    grounded = np.bincount(cluster, weights=below.reshape(-1)[above_index], minlength=len(sizes)) == 0
     kept = np.flatnonzero((sizes >= config.min_points) & grounded)
     # Largest first; ties by the first point, so the numbering is deterministic.
     order = kept[np.lexsort((first[kept], -sizes[kept]))]
@@ -298,6 +298,6 @@ def _continues_below(image, valid, member, level, normals, tolerance, threshold,
     under = valid & (level <= -DEEP) & (level >= -0.05)
     if not under.any():
         return np.zeros(member.shape, bool)
-    band = valid & (level > -DEEP) & (level <= threshold) & (np.abs(normals @ normal) < np.cos(np.deg2rad(45.0)))
+    band = valid & (level > -DEEP) & (level <= threshold) & (np.abs(_dot(normals, np.asarray(normal, np.float32))) < np.cos(np.deg2rad(45.0)))
     components = image_clusters(image, member | band | under, normals, tolerance, 180.0, span)
     return member & np.isin(components, np.unique(components[under]))
