@@ -263,7 +263,7 @@ def test_ship_lines_copy_the_last_epoch_without_optimiser_state(tiny_runs):
 
 
 # The shipped checkpoints, each rebuilt from its recipe.
-REBUILT = ["ernet_default", "pointnetgpd_default", "ernet_ag-105-145"]
+REBUILT = ["ernet_default", "pointnetgpd_default", "ernet_ag-105-145", "ernet_robotiq-2f85"]
 
 
 @pytest.mark.parametrize("name", REBUILT)
