@@ -291,7 +291,8 @@ def test_the_planner_takes_the_checkpoint_shipped_for_its_gripper(trained, small
     from sgjax.planner import Planner
     from sgjax.stage2 import checkpoint
 
-    for preset, shipped in (("ag-105-145", "ernet_ag-105-145"), (ROBOTIQ, "ernet_default"), ("default", "ernet_default")):
+    for preset, shipped in (("ag-105-145", "ernet_ag-105-145"), (ROBOTIQ, "ernet_robotiq-2f85"), ("franka-hand", "ernet_default"),
+                           ("default", "ernet_default")):
         assert checkpoint.shipped_dir(checkpoint.ERNET_DEFAULT_DIR, load_gripper(preset)) == checkpoint.MODELS_DIR / shipped
     _, _, run = trained
     models = tmp_path / "models"
