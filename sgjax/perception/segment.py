@@ -4,11 +4,8 @@ Region growing on the image grid (as in Uckermann, Haschke & Ritter, IROS 2012, 
 organised segmentation): two neighbouring pixels above the table belong to one object when their points
 are within a distance tolerance of each other and no concave crease runs between the surfaces on either
 side of them (LCCP's convexity test on smoothed normals, Stein et al., CVPR 2014): objects piled
-against each other meet in a concave crease or a jump in depth. A sensor's noise also makes creases
-where there are none, or on a small object's studs and rims, and cuts pieces off an object: a cluster of
-fewer than `fragment_points` points that creases alone part from others joins the one it shares the
-most crease links with (`merge_fragments`). Clusters of fewer than `min_points` points are dropped
-(noise, flying pixels). Only what stands on the table counts: points that, dropped
+against each other meet in a concave crease or a jump in depth. Clusters of fewer than `min_points`
+points are dropped (noise, flying pixels). Only what stands on the table counts: points that, dropped
 along the table's normal, fall outside the table's visible extent (the robot's stand, a wall, a shelf
 beyond the edge) are background, as is a cluster whose surface goes on below the table (a stand right
 beside it, its legs) and anything below the table. Touching objects without
@@ -34,19 +31,16 @@ class SegmentConfig:
     """tolerance: the largest step (metres) between neighbouring pixels of one object (grown with the
     sensor's noise and with grazing x the pixel's footprint, `link_tolerance`); concave_deg: a concave crease sharper than this between the
     surfaces on either side of two neighbours separates them (touching objects meet in one);
-    normal_window, normal_span: the smoothing of the normals (pixels); fragment_points: a cluster of fewer
-    points that only concave creases part from others joins the one it shares the most crease links with
-    (`merge_fragments`: a sensor's noise on a small object's studs or rim cuts it into pieces; 0: never);
-    min_points: smaller clusters are dropped (noise, flying pixels); min_height: points less than this above
-    the table are table, unless the table's own noise is larger (then 3 sigma of it, estimated from the
-    frame); max_height: points higher above the table are background."""
+    normal_window, normal_span: the smoothing of the normals (pixels); min_points: smaller clusters are dropped
+    (noise, flying pixels); min_height: points less than this above the table are table, unless the
+    table's own noise is larger (then 3 sigma of it, estimated from the frame); max_height: points
+    higher above the table are background."""
 
     tolerance: float = 0.004
     grazing: float = 6.0
     concave_deg: float = 30.0
     normal_window: int = 7
     normal_span: int = 3
-    fragment_points: int = 200
     min_points: int = 50
     min_height: float = 0.004
     max_height: float = 0.5
@@ -58,8 +52,6 @@ class SegmentConfig:
         if self.min_points < 1 or self.normal_window < 1 or self.normal_span < 1:
             raise ValueError(f"need min_points, normal_window and normal_span >= 1, got {self.min_points}, "
                              f"{self.normal_window} and {self.normal_span}")
-        if self.fragment_points < 0:
-            raise ValueError(f"need fragment_points >= 0 (0: no merging), got {self.fragment_points}")
         if not (self.grazing > 0 and 0 < self.concave_deg <= 180):
             raise ValueError(f"need grazing > 0 and 0 < concave_deg <= 180, got {self.grazing} and {self.concave_deg}")
 
@@ -195,13 +187,12 @@ def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def image_clusters(image: np.ndarray, member: np.ndarray, normals: np.ndarray, tolerance: np.ndarray,
-                   concave_deg: float, span: int, creases: list | None = None) -> np.ndarray:
+                   concave_deg: float, span: int) -> np.ndarray:
     """Connected components [H, W] (int, -1 off `member`) of the member pixels, where two 4-neighbours
     are joined when they lie within the first one's `tolerance` [H, W] of each other and no concave
     crease runs between the surfaces on their two sides (the normals `span` pixels before the first and
     after the second; LCCP's test: (n_a - n_b) . (p_a - p_b) < 0, and the normals more than concave_deg
-    apart). creases: a list that receives the pairs a crease parted, as (first, second) flat pixel
-    indices int [L] each (`merge_fragments`)."""
+    apart)."""
     from scipy.ndimage import label
 
     h, w = member.shape
@@ -225,59 +216,10 @@ def image_clusters(image: np.ndarray, member: np.ndarray, normals: np.ndarray, t
             bent = np.flatnonzero(_dot(na, nb) < cos_concave)
             concave = np.zeros(len(r), bool)
             concave[bent] = _dot(na[bent] - nb[bent], flat_image[a[bent]] - flat_image[b[bent]]) < 0
-            if creases is not None:
-                creases.append((r[concave] * w + c[concave], (r[concave] + dr) * w + c[concave] + dc))
             r, c = r[~concave], c[~concave]
         grid[2 * r + dr, 2 * c + dc] = True
     components, _ = label(grid)
     return np.where(member, components[::2, ::2], -1)
-
-
-def merge_fragments(components: np.ndarray, creases: list, min_points: int) -> np.ndarray:
-    """`image_clusters`' components [H, W] (-1 off the members) with their fragments merged: in rounds,
-    every component of fewer than `min_points` pixels joins the one it shares the most crease links with
-    (`creases`: image_clusters' (first, second) flat pixel index pairs; ties to the lower label), until
-    no such component shares a crease with another. A merged group's links are those of its parts, so a
-    group of fragments still too small goes on as one. -> int [H, W], -1 off the members. On a small
-    object a sensor's noise makes spurious creases (studs, rims, handles) that cut it into pieces; two
-    objects touching in a pile meet in a crease as well, but each is rarely that small."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
-    if min_points <= 0 or not creases:
-        return components
-    flat = components.reshape(-1)
-    first = flat[np.concatenate([pair[0] for pair in creases])]
-    second = flat[np.concatenate([pair[1] for pair in creases])]
-    n = int(flat.max()) + 1
-    group = np.arange(n)  # each component's group so far
-    pixels = np.bincount(flat[flat >= 0], minlength=n)  # per component
-    size = pixels  # per group
-    # Each round leaves fewer groups; a few settle a frame, the bound only caps a pathological one.
-    for _ in range(32):
-        a, b = group[first], group[second]
-        apart = (a != b) & (first >= 0) & (second >= 0)
-        small = size[group] < min_points  # per component: its group is too small
-        # Both directions of each link whose source group is small: (source, target) as one integer.
-        code = np.concatenate([a[apart & small[first]] * n + b[apart & small[first]],
-                               b[apart & small[second]] * n + a[apart & small[second]]])
-        if not len(code):
-            break
-        pairs, count = np.unique(code, return_counts=True)
-        source, target = pairs // n, pairs % n
-        # Per source the target with the most links (ties: the lower label): sorted by source, then count
-        # descending, then target; the first row of each source.
-        order = np.lexsort((target, -count, source))
-        source, target = source[order], target[order]
-        best = np.flatnonzero(np.r_[True, source[1:] != source[:-1]])
-        joined = coo_matrix((np.ones(len(best)), (source[best], target[best])), shape=(n, n))
-        _, merged = connected_components(joined, directed=False)
-        # Relabel by each merged set's lowest group id, so labels stay those of image_clusters' components.
-        lowest = np.full(n, n)
-        np.minimum.at(lowest, merged, np.arange(n))
-        group = lowest[merged[group]]
-        size = np.bincount(group, weights=pixels, minlength=n)
-    return np.where(components >= 0, group[np.maximum(components, 0)], -1)
 
 
 def segment_objects(points: np.ndarray, pixels: np.ndarray, image_size: tuple[int, int], table: TablePlane,
@@ -328,9 +270,7 @@ def segment_objects(points: np.ndarray, pixels: np.ndarray, image_size: tuple[in
     normals = smooth_normals(image, valid, viewpoint, config.normal_window, config.normal_span)
     ray = image - np.asarray(viewpoint, np.float32)
     tolerance = link_tolerance(np.sqrt(_dot(ray, ray)), pixel_angle, noise, config).astype(np.float32)
-    creases: list = []
-    components = image_clusters(image, member, normals, tolerance, config.concave_deg, config.normal_span, creases)
-    components = merge_fragments(components, creases, config.fragment_points)
+    components = image_clusters(image, member, normals, tolerance, config.concave_deg, config.normal_span)
     # first: each cluster's first point (row-major pixel order), for a deterministic numbering below.
     _, first, cluster = np.unique(components.reshape(-1)[above_index], return_index=True,
                                   return_inverse=True)
