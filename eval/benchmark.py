@@ -143,7 +143,7 @@ def _warm_up(method: Method, assets, n_objects: int, seed: int, index: int, conf
 
     start = time.perf_counter()
     scene = declutter.make_benchmark_scene(assets, n_objects, seed, index, config)
-    _, points, labels, _ = declutter.observe(scene, config, 0)
+    _, points, labels, *_ = declutter.observe(scene, config, 0)
     if getattr(method, "uses_ground_truth", False):
         method.set_scene(scene)
     if len(points):

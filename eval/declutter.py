@@ -33,7 +33,9 @@ Choices, documented:
     instance ids of the exact render, as a perfect segmenter would give) or from clustering
     ("clusters"). The method gets the table's and the objects' points (labels -1 and 1..K); what the
     front end put beyond the table is dropped. Which object a grasp is on is still decided on the exact
-    render's truth.
+    render's truth. With clusters, a method that finds no grasp plans once more on the frame's joined
+    hypothesis (`Frame.joined`: crease-cut fragments joined to their neighbour), as `sgjax plan --depth`
+    does; the attempt's "seen" says "labels": "joined" when that plan's grasp was executed.
 """
 
 from __future__ import annotations
@@ -42,6 +44,7 @@ import dataclasses
 import inspect
 import time
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import numpy as np
 
@@ -253,23 +256,45 @@ def make_benchmark_scene(objects: Sequence, n_objects: int, seed: int, index: in
     return scene_lib.make_scene(objects, n_objects, scene_seed(seed, index), scene_config, config.gripper)
 
 
-def observe(scene, config: DeclutterConfig, seed: int) -> tuple[camera_lib.Observation, np.ndarray, np.ndarray, dict]:
-    """What the method sees of `scene`: (the exact observation, points [P, 3], labels [P], info). The
-    exact render's own cloud and labels, or through a sensor the front end's (module doc); info: the
-    front end's {"objects_found", "table" plane} then, else {}. A frame the front end cannot use
-    (PerceptionError) leaves the method no points."""
+class View(NamedTuple):
+    """What a method sees of a scene (`observe`): obs (the exact observation, which decides the
+    outcome), points [P, 3], labels [P], info (the front end's {"objects_found", "table" plane}, else
+    {}), joined (points [Q, 3], labels [Q]) of the frame's joined hypothesis, or None."""
+
+    obs: camera_lib.Observation
+    points: np.ndarray
+    labels: np.ndarray
+    info: dict
+    joined: tuple[np.ndarray, np.ndarray] | None = None
+
+
+def observe(scene, config: DeclutterConfig, seed: int) -> View:
+    """What the method sees of `scene`: the exact render's own cloud and labels, or through a sensor the
+    front end's (module doc), with the joined hypothesis when clustering made one that differs. A frame
+    the front end cannot use (PerceptionError) leaves the method no points."""
     if not config.through_sensor:
         obs = camera_lib.observe(scene, config.camera, seed=seed)
-        return obs, obs.points, obs.point_labels, {}
+        return View(obs, obs.points, obs.point_labels, {})
     sensed = sensors_lib.sense(scene, config.camera, config.sensor, seed=seed)
     obs = sensed.truth
     try:
         frame = sensors_lib.front_end(sensed, config.camera, config.masks)
     except PerceptionError as exc:
-        return obs, np.zeros((0, 3), np.float32), np.zeros(0, np.int32), {"front_end": str(exc)}
+        return View(obs, np.zeros((0, 3), np.float32), np.zeros(0, np.int32), {"front_end": str(exc)})
     points, labels = frame.table_and_objects()
     info = {"objects_found": len(frame.object_ids), "table": [round(v, 5) for v in frame.table.plane]}
-    return obs, points.astype(np.float32), labels, info
+    joined = None
+    if frame.has_joined:
+        joined_points, joined_labels = frame.table_and_objects(joined=True)
+        joined = (joined_points.astype(np.float32), joined_labels)
+    return View(obs, points.astype(np.float32), labels, info, joined)
+
+
+def _decide(method: Method, points, labels, viewpoint, seed: int, avoid) -> Decision:
+    """The method's plan, with the scene's memory when it has one (avoid not None)."""
+    if avoid is None:
+        return method.plan(points, labels, viewpoint, seed)
+    return method.plan(points, labels, viewpoint, seed, avoid=avoid)
 
 
 def run_scene(
@@ -318,7 +343,7 @@ def run_scene(
             end = "attempt_cap"
             break
         t0 = time.perf_counter()
-        obs, points, labels, seen = observe(scene, config, s_seed + len(attempts))
+        obs, points, labels, seen, joined = observe(scene, config, s_seed + len(attempts))
         observe_s = time.perf_counter() - t0
         first = obs if first is None else first
         if ground_truth:
@@ -327,11 +352,17 @@ def run_scene(
         if not len(points):  # the front end found no table in the frame: nothing to plan on
             end, final_reason, final_timing = "no_grasp", f"front end: {seen['front_end']}", {}
             break
-        if memory:
-            avoid = np.asarray(failed, np.float64).reshape(-1, 4, 4)
-            decision: Decision = method.plan(points, labels, viewpoint, p_seed, avoid=avoid)
-        else:
-            decision = method.plan(points, labels, viewpoint, p_seed)
+        avoid = np.asarray(failed, np.float64).reshape(-1, 4, 4) if memory else None
+        decision: Decision = _decide(method, points, labels, viewpoint, p_seed, avoid)
+        if decision.pose is None and joined is not None:  # the frame's joined hypothesis (module doc)
+            second = _decide(method, *joined, viewpoint, p_seed, avoid)
+            # Both plans' time counts: the first one ran before the second.
+            timing = {k: v + decision.timing.get(k, 0.0) if isinstance(v, float) else v for k, v in second.timing.items()}
+            if second.pose is not None:
+                decision, seen = dataclasses.replace(second, timing=timing), {**seen, "labels": "joined"}
+            else:
+                decision = dataclasses.replace(decision, timing=timing, reason=f"{decision.reason or 'no grasp'}; on "
+                                               f"the joined fragments: {second.reason or 'no grasp'}")
         if decision.pose is None:
             end, final_reason, final_timing = "no_grasp", decision.reason or "no grasp", dict(decision.timing)
             break

@@ -687,6 +687,43 @@ def test_through_a_sensor_the_method_sees_the_front_ends_frame(objects, masks):
         assert visible <= set(np.unique(labels[labels > 0]).tolist())
 
 
+class SecondPlan(Recorder):
+    """Recorder that finds no grasp on every first plan of an observation and InTheAir's on the second."""
+
+    name = "second-plan"
+
+    def plan(self, points, labels, viewpoint, seed=0):
+        self.seen.append((np.array(points), np.array(labels)))
+        if len(self.seen) % 2:
+            return Decision(None, 0.0, 0.0, "first plan: none", timing())
+        return InTheAir.plan(self, points, labels, viewpoint, seed)
+
+
+def test_with_clusters_a_method_without_a_grasp_plans_again_on_the_joined_fragments(objects):
+    """Through the stereo model with clusters (tiny-4, scene 2: a crease cuts an object in two), a method
+    that finds no grasp is shown the frame's joined hypothesis; the grasp it finds there is executed and
+    logged as such; with true masks there is no second plan."""
+    config = dataclasses.replace(CONFIG, sensor="stereo", masks="clusters", extra_attempts=0)
+    scene = declutter.make_benchmark_scene(objects, N_OBJECTS, 0, 2, config)
+    view = declutter.observe(scene, config, declutter.scene_seed(0, 2))
+    assert view.joined is not None and view.info["objects_found"] > len(np.unique(view.joined[1][view.joined[1] > 0]))
+    method = SecondPlan()
+    run = run_scene(method, objects, N_OBJECTS, seed=0, index=2, config=config, setting="tiny-4")
+    first = run.log["attempts"][0]
+    assert len(method.seen) >= 2 and first["seen"]["labels"] == "joined" and first["outcome"] == "no_object"
+    np.testing.assert_array_equal(method.seen[0][1], view.labels)
+    np.testing.assert_array_equal(method.seen[1][0], view.joined[0])
+    np.testing.assert_array_equal(method.seen[1][1], view.joined[1])
+    assert first["timing"]["total_s"] == pytest.approx(2 * timing()["total_s"])  # both plans' time
+    never = Never()
+    run = run_scene(never, objects, N_OBJECTS, seed=0, index=2, config=config, setting="tiny-4")
+    assert never.calls == 2 and run.log["end"] == "no_grasp"
+    assert run.log["final_reason"] == "nothing to do; on the joined fragments: nothing to do"
+    never = Never()
+    run_scene(never, objects, N_OBJECTS, seed=0, index=2, config=dataclasses.replace(config, masks="truth"), setting="tiny-4")
+    assert never.calls == 1
+
+
 def test_the_exact_camera_keeps_todays_cloud_and_key(objects):
     method = Recorder()
     run = run_scene(method, objects, N_OBJECTS, seed=0, index=0, config=dataclasses.replace(CONFIG, extra_attempts=0),

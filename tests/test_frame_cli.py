@@ -117,6 +117,34 @@ def test_plan_depth_in_camera_and_world_frames(frame_dir, capsys):
     assert "E-RNet checkpoint: sgjax/models/ernet_default" in out
 
 
+def test_plan_frame_tries_the_joined_hypothesis_when_the_first_finds_no_grasp(frame_dir):
+    """A clustered frame whose objects came out in pieces too small to plan on (5 x 5 pixel blocks, < 50
+    points each: the planner finds no object) gets its grasp from the joined hypothesis (here the true
+    masks' objects): FramePlan.frame is the joined frame, the grasp lies on the object it names there."""
+    import dataclasses
+
+    from sgjax.grasping import plan_frame
+    from sgjax.planner import Planner
+    from sgjax.stage1.database import DBConfig, load_database
+
+    f = files(frame_dir)
+    whole = Frame.from_depth(f["depth"], f["intrinsics"], extrinsics=f["extrinsics"], masks=f["masks"])
+    block = whole.pixels[:, 0] // 5 * 1000 + whole.pixels[:, 1] // 5
+    pieces = np.where(whole.labels > 0, np.unique(whole.labels * 10**6 + block, return_inverse=True)[1].reshape(-1) + 1,
+                      whole.labels).astype(np.int32)
+    assert np.bincount(pieces[pieces > 0]).max() < 50
+    frame = dataclasses.replace(whole, labels=pieces, joined_labels=whole.labels, segmentation="clusters")
+    planner = Planner(db=load_database(DBConfig.small(), progress=False))
+    result = plan_frame(planner, frame)
+    assert result.frame.segmentation == "joined clusters" and np.array_equal(result.frame.labels, whole.labels)
+    (g,) = result.grasps
+    assert g.object in whole.object_ids and not result.reasons
+    assert np.linalg.norm(whole.object_points(g.object) - g.center, axis=1).min() < NEAR
+    # Without the joined hypothesis the same frame gets none, and says why.
+    alone = plan_frame(planner, dataclasses.replace(frame, joined_labels=None))
+    assert not alone.grasps and alone.frame is not None and "50" in alone.reasons["scene"]
+
+
 def test_plan_depth_with_masks_all_objects_alternatives_and_a_picture(frame_dir, capsys, tmp_path):
     f = files(frame_dir)
     png = tmp_path / "plan.png"

@@ -180,7 +180,7 @@ def test_point_in_convex_polygon_matches_every_edges_half_plane():
 def test_image_clusters_match_the_definition_pair_by_pair():
     """`image_clusters` (links labelled on a grid of twice the resolution) against its definition,
     written out pixel pair by pair with a union-find: the same partition of the member pixels, with and
-    without the crease test."""
+    without the crease test, and the same pairs parted by a crease."""
     from sgjax.perception.segment import image_clusters, smooth_normals
 
     rng = np.random.default_rng(5)
@@ -194,8 +194,10 @@ def test_image_clusters_match_the_definition_pair_by_pair():
         normals = smooth_normals(image, np.ones((h, w), bool), np.zeros(3), 3, span)
         tolerance = np.full((h, w), 0.004, np.float32)
         for concave_deg in (30.0, 180.0):
-            got = image_clusters(image, member, normals, tolerance, concave_deg, span)
+            creases: list = []
+            got = image_clusters(image, member, normals, tolerance, concave_deg, span, creases)
             parent = list(range(h * w))
+            parted = set()
 
             def find(i):
                 while parent[i] != i:
@@ -215,6 +217,7 @@ def test_image_clusters_match_the_definition_pair_by_pair():
                         rb, cb = min(r2 + dr * span, h - 1), min(c2 + dc * span, w - 1)
                         na, nb = normals[ra, ca], normals[rb, cb]
                         if na @ nb < np.cos(np.deg2rad(concave_deg)) and (na - nb) @ (image[ra, ca] - image[rb, cb]) < 0:
+                            parted.add((r * w + c, r2 * w + c2))
                             continue
                         parent[find(r * w + c)] = find(r2 * w + c2)
             expected = np.array([find(i) for i in range(h * w)]).reshape(h, w)
@@ -223,3 +226,42 @@ def test_image_clusters_match_the_definition_pair_by_pair():
             # One-to-one: each found component is one expected component and back.
             assert len(pairs) == len({a for a, _ in pairs}) == len({b for _, b in pairs}), (trial, concave_deg)
             assert 1 < len(pairs) < member.sum()
+            # The pairs a crease parted, as merge_fragments gets them.
+            found = {(int(a), int(b)) for first, second in creases for a, b in zip(first, second)}
+            assert found == parted and (len(parted) > 0) == (concave_deg < 180.0)
+
+
+def test_fragments_join_the_neighbour_they_share_the_most_creases_with():
+    """`merge_fragments` on a hand-made partition: a fragment joins the component it shares the most crease
+    links with, a group of fragments still too small goes on with the links of its parts, large components
+    and an unlinked fragment stay, and fragment_points 0 changes nothing."""
+    from sgjax.perception.segment import merge_fragments
+
+    # One row of pixels per component is enough: components are labels, creases flat index pairs.
+    sizes = {1: 300, 2: 20, 3: 300, 4: 30, 5: 10}  # 2, 4, 5 are fragments below 200
+    components = np.concatenate([np.full(n, k) for k, n in sizes.items()] + [np.full(7, -1)])[None]
+    first_pixel = {k: int(np.flatnonzero(components[0] == k)[0]) for k in sizes}
+
+    def links(x, y, n):
+        return (np.full(n, first_pixel[x]), np.full(n, first_pixel[y]))
+
+    # 2 shares 5 links with 1 and 2 with 3; 5 shares 3 with 2 only; 4 shares none with anyone.
+    creases = [links(2, 1, 5), links(3, 2, 2), links(5, 2, 3)]
+    got = merge_fragments(components, creases, 200)[0]
+    assert set(np.unique(got[components[0] == 2])) == set(np.unique(got[components[0] == 1]))  # 2 -> 1
+    assert set(np.unique(got[components[0] == 5])) == set(np.unique(got[components[0] == 1]))  # 5 -> 2 -> 1
+    assert len(set(got[components[0] == 1]) | set(got[components[0] == 3]) | set(got[components[0] == 4])) == 3
+    assert np.array_equal(got < 0, components[0] < 0)
+    # 2 with more links to 3 than to 1 joins 3, and 5 with it.
+    creases = [links(2, 1, 2), links(3, 2, 4), links(5, 2, 3), links(5, 1, 1)]
+    got = merge_fragments(components, creases, 200)[0]
+    assert got[first_pixel[2]] == got[first_pixel[3]] == got[first_pixel[5]] != got[first_pixel[1]]
+    # 2 and 5 first join each other (their best links); as a group still too small, they then join the
+    # component their links together favour: 3 (2 + 2 links), where 2 alone favoured 1 (3 against 2).
+    creases = [links(2, 5, 10), links(2, 1, 3), links(2, 3, 2), links(5, 3, 2)]
+    got = merge_fragments(components, creases, 200)[0]
+    assert got[first_pixel[2]] == got[first_pixel[3]] == got[first_pixel[5]] != got[first_pixel[1]]
+    # Large enough, the pair stays as it is after its first merge.
+    got = merge_fragments(components, creases, 25)[0]
+    assert got[first_pixel[2]] == got[first_pixel[5]] not in (got[first_pixel[1]], got[first_pixel[3]])
+    np.testing.assert_array_equal(merge_fragments(components, creases, 0), components)

@@ -21,7 +21,7 @@ import numpy as np
 from sgjax.perception.camera import (Intrinsics, existing_file, read_extrinsics, read_intrinsics, rigid_extrinsics,
                                      to_world)
 from sgjax.perception.depth import back_project, read_depth
-from sgjax.perception.segment import (OTHER, TABLE, SegmentConfig, height_threshold, plane_basis, segment_objects,
+from sgjax.perception.segment import (OTHER, TABLE, SegmentConfig, height_threshold, plane_basis, segment_with_joined,
                                       table_noise)
 from sgjax.perception.table import TablePlane, fit_table
 from sgjax.utils.threads import one_blas_thread
@@ -40,7 +40,9 @@ class Frame:
     """A depth frame's scene: points [N, 3] (metres, `frame` coordinates), labels int32 [N] (module
     doc), pixels int [N, 2] (row, column of each point), table (its plane in the same frame, normal
     towards the camera), camera_position [3], intrinsics, extrinsics [4, 4] camera-to-world or None,
-    image_size (height, width), segmentation "masks" | "clusters"."""
+    image_size (height, width), segmentation "masks" | "clusters"; joined_labels int32 [N]: with
+    clusters, the coarser hypothesis in which crease-cut fragments have joined their neighbour
+    (`sgjax.perception.segment.segment_with_joined`; a planner that finds no grasp tries it), else None."""
 
     points: np.ndarray
     labels: np.ndarray
@@ -51,6 +53,7 @@ class Frame:
     extrinsics: np.ndarray | None
     image_size: tuple[int, int]
     segmentation: str
+    joined_labels: np.ndarray | None = None
 
     @property
     def frame(self) -> str:
@@ -66,12 +69,27 @@ class Frame:
         """[n, 3] the points of object `object_id`."""
         return self.points[self.labels == object_id]
 
-    def table_and_objects(self) -> tuple[np.ndarray, np.ndarray]:
+    def table_and_objects(self, joined: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """What a planner is handed: the points [M, 3] of the table and the objects and their labels [M]
         (TABLE, 1..K); the rest (noise above the table, anything below or beyond it) would be taken for
-        obstacles."""
-        keep = self.labels != OTHER
-        return self.points[keep], self.labels[keep]
+        obstacles. joined: by the joined hypothesis (`joined_labels`; ValueError when there is none)."""
+        if joined and self.joined_labels is None:
+            raise ValueError("this frame has no joined hypothesis (its objects come from masks)")
+        labels = self.joined_labels if joined else self.labels
+        keep = labels != OTHER
+        return self.points[keep], labels[keep]
+
+    def joined(self) -> Frame:
+        """This frame with the joined hypothesis as its labels (segmentation "joined clusters"; ValueError
+        when there is none)."""
+        if self.joined_labels is None:
+            raise ValueError("this frame has no joined hypothesis (its objects come from masks)")
+        return dataclasses.replace(self, labels=self.joined_labels, joined_labels=None, segmentation="joined clusters")
+
+    @property
+    def has_joined(self) -> bool:
+        """Whether the joined hypothesis differs from the labels (else planning on it changes nothing)."""
+        return self.joined_labels is not None and not np.array_equal(self.joined_labels, self.labels)
 
     def label_image(self) -> np.ndarray:
         """[H, W] int32 the label of each pixel; OTHER where the frame has no point."""
@@ -154,12 +172,13 @@ class Frame:
         if table.inliers.mean() < MIN_TABLE_SHARE:
             raise PerceptionError(f"no table plane found: the largest plane holds {100 * table.inliers.mean():.1f} % of "
                                   f"the points (< {100 * MIN_TABLE_SHARE:.0f} %)")
+        joined = None
         if ids is None:
-            labels, how = segment_objects(points, pixels, size, table, camera_position,
-                                     1.0 / min(intrinsics.fx, intrinsics.fy), segment), "clusters"
+            (labels, joined), how = segment_with_joined(points, pixels, size, table, camera_position,
+                                                        1.0 / min(intrinsics.fx, intrinsics.fy), segment), "clusters"
         else:
             labels, how = _mask_labels(ids, pixels, points, table, segment), "masks"
-        return cls(points, labels, pixels, table, camera_position, intrinsics, extrinsics, size, how)
+        return cls(points, labels, pixels, table, camera_position, intrinsics, extrinsics, size, how, joined)
 
 
 def _is_path(value) -> bool:

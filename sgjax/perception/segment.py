@@ -10,7 +10,13 @@ along the table's normal, fall outside the table's visible extent (the robot's s
 beyond the edge) are background, as is a cluster whose surface goes on below the table (a stand right
 beside it, its legs) and anything below the table. Touching objects without
 a crease still merge and an object seen in two pieces (an occluder in front of it) splits:
-docs/real-camera.md measures how often on simulated frames.
+docs/real-camera.md measures how often on simulated frames. A sensor's noise also makes creases where
+there are none, on a small object's studs or rim, and cuts it into pieces; `segment_with_joined` also
+gives a second, coarser hypothesis in which every cluster of fewer than `fragment_points` points that
+creases alone part from others has joined the one it shares the most crease links with
+(`merge_fragments`). It is a fallback: a planner that finds no grasp on the first labelling tries it
+(`sgjax.grasping.plan_frame`, the benchmark's harness); as the only labelling it cost grasp success
+(docs/experiments.md, 2026-12-06).
 """
 
 from __future__ import annotations
@@ -31,16 +37,19 @@ class SegmentConfig:
     """tolerance: the largest step (metres) between neighbouring pixels of one object (grown with the
     sensor's noise and with grazing x the pixel's footprint, `link_tolerance`); concave_deg: a concave crease sharper than this between the
     surfaces on either side of two neighbours separates them (touching objects meet in one);
-    normal_window, normal_span: the smoothing of the normals (pixels); min_points: smaller clusters are dropped
-    (noise, flying pixels); min_height: points less than this above the table are table, unless the
-    table's own noise is larger (then 3 sigma of it, estimated from the frame); max_height: points
-    higher above the table are background."""
+    normal_window, normal_span: the smoothing of the normals (pixels); fragment_points: in the joined
+    hypothesis (`segment_with_joined`), a cluster of fewer points that only concave creases part from
+    others joins the one it shares the most crease links with (0: the same as the first); min_points:
+    smaller clusters are dropped (noise, flying pixels); min_height: points less than this above the
+    table are table, unless the table's own noise is larger (then 3 sigma of it, estimated from the
+    frame); max_height: points higher above the table are background."""
 
     tolerance: float = 0.004
     grazing: float = 6.0
     concave_deg: float = 30.0
     normal_window: int = 7
     normal_span: int = 3
+    fragment_points: int = 200
     min_points: int = 50
     min_height: float = 0.004
     max_height: float = 0.5
@@ -52,6 +61,8 @@ class SegmentConfig:
         if self.min_points < 1 or self.normal_window < 1 or self.normal_span < 1:
             raise ValueError(f"need min_points, normal_window and normal_span >= 1, got {self.min_points}, "
                              f"{self.normal_window} and {self.normal_span}")
+        if self.fragment_points < 0:
+            raise ValueError(f"need fragment_points >= 0 (0: no joining), got {self.fragment_points}")
         if not (self.grazing > 0 and 0 < self.concave_deg <= 180):
             raise ValueError(f"need grazing > 0 and 0 < concave_deg <= 180, got {self.grazing} and {self.concave_deg}")
 
@@ -187,12 +198,13 @@ def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def image_clusters(image: np.ndarray, member: np.ndarray, normals: np.ndarray, tolerance: np.ndarray,
-                   concave_deg: float, span: int) -> np.ndarray:
+                   concave_deg: float, span: int, creases: list | None = None) -> np.ndarray:
     """Connected components [H, W] (int, -1 off `member`) of the member pixels, where two 4-neighbours
     are joined when they lie within the first one's `tolerance` [H, W] of each other and no concave
     crease runs between the surfaces on their two sides (the normals `span` pixels before the first and
     after the second; LCCP's test: (n_a - n_b) . (p_a - p_b) < 0, and the normals more than concave_deg
-    apart)."""
+    apart). creases: a list that receives the pairs a crease parted, as (first, second) flat pixel
+    indices int [L] each (`merge_fragments`)."""
     from scipy.ndimage import label
 
     h, w = member.shape
@@ -216,10 +228,59 @@ def image_clusters(image: np.ndarray, member: np.ndarray, normals: np.ndarray, t
             bent = np.flatnonzero(_dot(na, nb) < cos_concave)
             concave = np.zeros(len(r), bool)
             concave[bent] = _dot(na[bent] - nb[bent], flat_image[a[bent]] - flat_image[b[bent]]) < 0
+            if creases is not None:
+                creases.append((r[concave] * w + c[concave], (r[concave] + dr) * w + c[concave] + dc))
             r, c = r[~concave], c[~concave]
         grid[2 * r + dr, 2 * c + dc] = True
     components, _ = label(grid)
     return np.where(member, components[::2, ::2], -1)
+
+
+def merge_fragments(components: np.ndarray, creases: list, min_points: int) -> np.ndarray:
+    """`image_clusters`' components [H, W] (-1 off the members) with their fragments merged: in rounds,
+    every component of fewer than `min_points` pixels joins the one it shares the most crease links with
+    (`creases`: image_clusters' (first, second) flat pixel index pairs; ties to the lower label), until
+    no such component shares a crease with another. A merged group's links are those of its parts, so a
+    group of fragments still too small goes on as one. -> int [H, W], -1 off the members. On a small
+    object a sensor's noise makes spurious creases (studs, rims, handles) that cut it into pieces; two
+    objects touching in a pile meet in a crease as well, but each is rarely that small."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    if min_points <= 0 or not creases:
+        return components
+    flat = components.reshape(-1)
+    first = flat[np.concatenate([pair[0] for pair in creases])]
+    second = flat[np.concatenate([pair[1] for pair in creases])]
+    n = int(flat.max()) + 1
+    group = np.arange(n)  # each component's group so far
+    pixels = np.bincount(flat[flat >= 0], minlength=n)  # per component
+    size = pixels  # per group
+    # Each round leaves fewer groups; a few settle a frame, the bound only caps a pathological one.
+    for _ in range(32):
+        a, b = group[first], group[second]
+        apart = (a != b) & (first >= 0) & (second >= 0)
+        small = size[group] < min_points  # per component: its group is too small
+        # Both directions of each link whose source group is small: (source, target) as one integer.
+        code = np.concatenate([a[apart & small[first]] * n + b[apart & small[first]],
+                               b[apart & small[second]] * n + a[apart & small[second]]])
+        if not len(code):
+            break
+        pairs, count = np.unique(code, return_counts=True)
+        source, target = pairs // n, pairs % n
+        # Per source the target with the most links (ties: the lower label): sorted by source, then count
+        # descending, then target; the first row of each source.
+        order = np.lexsort((target, -count, source))
+        source, target = source[order], target[order]
+        best = np.flatnonzero(np.r_[True, source[1:] != source[:-1]])
+        joined = coo_matrix((np.ones(len(best)), (source[best], target[best])), shape=(n, n))
+        _, merged = connected_components(joined, directed=False)
+        # Relabel by each merged set's lowest group id, so labels stay those of image_clusters' components.
+        lowest = np.full(n, n)
+        np.minimum.at(lowest, merged, np.arange(n))
+        group = lowest[merged[group]]
+        size = np.bincount(group, weights=pixels, minlength=n)
+    return np.where(components >= 0, group[np.maximum(components, 0)], -1)
 
 
 def segment_objects(points: np.ndarray, pixels: np.ndarray, image_size: tuple[int, int], table: TablePlane,
@@ -228,6 +289,20 @@ def segment_objects(points: np.ndarray, pixels: np.ndarray, image_size: tuple[in
     `back_project` gives them) of an image of image_size (H, W), seen from viewpoint [3] with
     pixel_angle radians per pixel (1 / f), over its table -> int32 [N]: objects 1..K (the largest
     first), TABLE (-1) for the table, OTHER (-2) for the rest (module doc)."""
+    return _segment(points, pixels, image_size, table, viewpoint, pixel_angle, config, False)[0]
+
+
+def segment_with_joined(points: np.ndarray, pixels: np.ndarray, image_size: tuple[int, int], table: TablePlane,
+                        viewpoint, pixel_angle: float, config: SegmentConfig = SegmentConfig()
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    """`segment_objects`' labels int32 [N] and the joined hypothesis' int32 [N] (module doc: the
+    crease-cut fragments joined, `merge_fragments` with config.fragment_points), numbered the same way,
+    from one pass."""
+    return _segment(points, pixels, image_size, table, viewpoint, pixel_angle, config, True)
+
+
+def _segment(points, pixels, image_size, table: TablePlane, viewpoint, pixel_angle: float, config: SegmentConfig,
+             joined: bool) -> tuple[np.ndarray, np.ndarray | None]:
     points = np.asarray(points, np.float64)
     if len(pixels) > 1 and np.any(pixels[1:, 0] < pixels[:-1, 0]):
         raise ValueError("segment_objects: the pixels must come in row-major order (as back_project gives them)")
@@ -243,14 +318,14 @@ def segment_objects(points: np.ndarray, pixels: np.ndarray, image_size: tuple[in
     table_rows = table_rows[:: max(1, len(table_rows) // 50000)]  # what table_extent keeps, gathered alone
     above[above] = over_table(points[above], table_extent(points[table_rows], table.normal), table.normal)
     if not above.any():
-        return labels
+        return labels, labels.copy() if joined else None
     # Lone pixels above the table (the noise's tail) are no object: only 8x8-pixel blocks holding at
     # least min_points / 8 of them count, so that the box looked at below is the objects', not the frame's.
     row, col = pixels[:, 0], pixels[:, 1]  # a column at a time: NumPy is slow over narrow [N, 2] arrays
     block_index = (row[above] // 8) * (image_size[1] // 8 + 1) + col[above] // 8
     above[above] = np.bincount(block_index)[block_index] >= max(1, config.min_points // 8)
     if not above.any():
-        return labels
+        return labels, labels.copy() if joined else None
     # Only the box of image rows and columns around the points above the table is looked at.
     margin = config.normal_window + config.normal_span
     above_row, above_col = row[above], col[above]
@@ -270,23 +345,36 @@ def segment_objects(points: np.ndarray, pixels: np.ndarray, image_size: tuple[in
     normals = smooth_normals(image, valid, viewpoint, config.normal_window, config.normal_span)
     ray = image - np.asarray(viewpoint, np.float32)
     tolerance = link_tolerance(np.sqrt(_dot(ray, ray)), pixel_angle, noise, config).astype(np.float32)
-    components = image_clusters(image, member, normals, tolerance, config.concave_deg, config.normal_span)
-    # first: each cluster's first point (row-major pixel order), for a deterministic numbering below.
-    _, first, cluster = np.unique(components.reshape(-1)[above_index], return_index=True,
-                                  return_inverse=True)
-    cluster = cluster.reshape(-1)
-    sizes = np.bincount(cluster)
+    creases: list | None = [] if joined else None
+    components = image_clusters(image, member, normals, tolerance, config.concave_deg, config.normal_span, creases)
     level = np.zeros(member.shape)
     level.reshape(-1)[box_index] = height[box]
     below = _continues_below(image, valid, member, level, normals, tolerance, threshold, table.normal, config.normal_span)
-    grounded = np.bincount(cluster, weights=below.reshape(-1)[above_index], minlength=len(sizes)) == 0
-    kept = np.flatnonzero((sizes >= config.min_points) & grounded)
-    # Largest first; ties by the first point, so the numbering is deterministic.
+    below = below.reshape(-1)[above_index]
+    first = labels.copy()
+    first[above] = _numbered(components.reshape(-1)[above_index], below, config.min_points)
+    if not joined:
+        return first, None
+    second = labels.copy()
+    merged = merge_fragments(components, creases, config.fragment_points)
+    second[above] = _numbered(merged.reshape(-1)[above_index], below, config.min_points)
+    return first, second
+
+
+def _numbered(components: np.ndarray, below: np.ndarray, min_points: int) -> np.ndarray:
+    """Object labels int32 [M] of the points above the table from their components [M] (int, in the
+    points' row-major order): 1..K for the clusters of at least min_points points none of which goes on
+    below the table (`below` bool [M]), the largest first (ties by the first point, so the numbering is
+    deterministic), OTHER for the rest."""
+    _, first, cluster = np.unique(components, return_index=True, return_inverse=True)
+    cluster = cluster.reshape(-1)
+    sizes = np.bincount(cluster)
+    grounded = np.bincount(cluster, weights=below, minlength=len(sizes)) == 0
+    kept = np.flatnonzero((sizes >= min_points) & grounded)
     order = kept[np.lexsort((first[kept], -sizes[kept]))]
     new_id = np.full(len(sizes), OTHER, np.int32)
     new_id[order] = np.arange(1, len(order) + 1, dtype=np.int32)
-    labels[above] = new_id[cluster]
-    return labels
+    return new_id[cluster]
 
 
 def _continues_below(image, valid, member, level, normals, tolerance, threshold, normal, span) -> np.ndarray:
