@@ -16,8 +16,12 @@ from threadpoolctl import ThreadpoolController
 
 @functools.cache
 def _controller() -> ThreadpoolController:
-    # Made on first use, when NumPy's and SciPy's BLAS libraries are loaded (a controller knows the
-    # libraries of its making); a controller's limit costs ~10 us, a fresh scan ~1 ms.
+    # A controller knows only the libraries loaded at its making, so both BLAS libraries are loaded first
+    # (SciPy brings its own OpenBLAS; made before it, the controller left it on every core). A
+    # controller's limit costs ~10 us, a fresh scan ~1 ms.
+    import numpy.linalg  # noqa: F401
+    import scipy.linalg  # noqa: F401
+
     return ThreadpoolController()
 
 
