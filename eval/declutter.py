@@ -285,7 +285,7 @@ def observe(scene, config: DeclutterConfig, seed: int) -> View:
     info = {"objects_found": len(frame.object_ids), "table": [round(v, 5) for v in frame.table.plane]}
     joined = None
     if frame.has_joined:
-        joined_points, joined_labels = frame.table_and_objects(joined=True)
+        joined_points, joined_labels = frame.joined().table_and_objects()
         joined = (joined_points.astype(np.float32), joined_labels)
     return View(obs, points.astype(np.float32), labels, info, joined)
 

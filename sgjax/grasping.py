@@ -65,7 +65,7 @@ class FramePlan:
     plans: dict
     reasons: dict
     timing: dict
-    frame: Frame | None = None
+    frame: Frame
 
 
 def _grasp(label: int, pose_table: np.ndarray, width: float, score: float, kind: str, to_frame: np.ndarray,

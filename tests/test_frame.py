@@ -101,7 +101,7 @@ def test_the_joined_hypothesis_gives_the_pieces_a_crease_cuts_off_back():
             kept[name].append(counts.max() / np.sum((truth == k) & (labels != TABLE)))
     assert min(kept["joined"]) >= 0.97
     assert sum(kept["joined"]) > sum(kept["first"]) + 0.05  # pieces the joining gave back
-    points, labels = frame.table_and_objects(joined=True)
+    points, labels = frame.joined().table_and_objects()
     assert len(points) == len(labels) and set(np.unique(labels)) == {TABLE, 1, 2, 3, 4, 5}
     # fragment_points 0: the joined hypothesis is the first one.
     same = Frame.from_depth(depth, K, extrinsics=camera_pose(), segment=SegmentConfig(fragment_points=0))
@@ -109,7 +109,7 @@ def test_the_joined_hypothesis_gives_the_pieces_a_crease_cuts_off_back():
     masked = Frame.from_depth(depth, K, extrinsics=camera_pose(), masks=ids)
     assert masked.joined_labels is None and not masked.has_joined
     with pytest.raises(ValueError, match="no joined hypothesis"):
-        masked.table_and_objects(joined=True)
+        masked.joined()
 
 
 def test_camera_and_world_frames_agree():

@@ -69,15 +69,12 @@ class Frame:
         """[n, 3] the points of object `object_id`."""
         return self.points[self.labels == object_id]
 
-    def table_and_objects(self, joined: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    def table_and_objects(self) -> tuple[np.ndarray, np.ndarray]:
         """What a planner is handed: the points [M, 3] of the table and the objects and their labels [M]
         (TABLE, 1..K); the rest (noise above the table, anything below or beyond it) would be taken for
-        obstacles. joined: by the joined hypothesis (`joined_labels`; ValueError when there is none)."""
-        if joined and self.joined_labels is None:
-            raise ValueError("this frame has no joined hypothesis (its objects come from masks)")
-        labels = self.joined_labels if joined else self.labels
-        keep = labels != OTHER
-        return self.points[keep], labels[keep]
+        obstacles. The joined hypothesis': `frame.joined().table_and_objects()`."""
+        keep = self.labels != OTHER
+        return self.points[keep], self.labels[keep]
 
     def joined(self) -> Frame:
         """This frame with the joined hypothesis as its labels (segmentation "joined clusters"; ValueError
