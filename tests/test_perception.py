@@ -147,7 +147,10 @@ def test_the_front_end_runs_blas_on_one_thread_and_gives_it_back():
     def blas() -> list[int]:
         return [lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"]
 
-    np.ones((64, 3)) @ np.ones((3, 3))  # NumPy's BLAS is loaded
+    import scipy.linalg
+
+    np.ones((64, 3)) @ np.ones((3, 3))  # NumPy's BLAS is loaded, and SciPy's own (whichever loads first)
+    scipy.linalg.blas.dgemm(1.0, np.ones((4, 3)), np.ones((3, 3)))
     before = blas()
     assert before
     with pytest.raises(RuntimeError):
@@ -189,7 +192,7 @@ def test_image_clusters_match_the_definition_pair_by_pair():
         # Two tilted planes at different depths with noise: some steps link, some do not, some creases bend.
         yy, xx = np.mgrid[:h, :w].astype(np.float32)
         depth = np.where(xx < w // 2, 1.0 + 0.01 * yy, 1.05 - 0.02 * xx / w) + rng.normal(0, 0.002, (h, w))
-        image = np.stack([xx * 0.003, yy * 0.003, depth], -1).astype(np.float32)
+        image = np.stack([xx * 0.003, yy * 0.003, depth]).astype(np.float32)  # channel-first [3, h, w]
         member = rng.random((h, w)) < 0.8
         normals = smooth_normals(image, np.ones((h, w), bool), np.zeros(3), 3, span)
         tolerance = np.full((h, w), 0.004, np.float32)
@@ -211,12 +214,12 @@ def test_image_clusters_match_the_definition_pair_by_pair():
                         r2, c2 = r + dr, c + dc
                         if r2 >= h or c2 >= w or not (member[r, c] and member[r2, c2]):
                             continue
-                        if np.sum((image[r, c] - image[r2, c2]) ** 2) > tolerance[r, c] ** 2:
+                        if np.sum((image[:, r, c] - image[:, r2, c2]) ** 2) > tolerance[r, c] ** 2:
                             continue
                         ra, ca = min(max(r - dr * span, 0), h - 1), min(max(c - dc * span, 0), w - 1)
                         rb, cb = min(r2 + dr * span, h - 1), min(c2 + dc * span, w - 1)
-                        na, nb = normals[ra, ca], normals[rb, cb]
-                        if na @ nb < np.cos(np.deg2rad(concave_deg)) and (na - nb) @ (image[ra, ca] - image[rb, cb]) < 0:
+                        na, nb = normals[:, ra, ca], normals[:, rb, cb]
+                        if na @ nb < np.cos(np.deg2rad(concave_deg)) and (na - nb) @ (image[:, ra, ca] - image[:, rb, cb]) < 0:
                             parted.add((r * w + c, r2 * w + c2))
                             continue
                         parent[find(r * w + c)] = find(r2 * w + c2)

@@ -60,7 +60,8 @@ def back_project(depth: np.ndarray, intrinsics: Intrinsics, min_depth: float = 0
                          f"{intrinsics.width}x{intrinsics.height}")
     # Flat indices and whole columns: NumPy gathers and fills narrow [N, 3] arrays a column at a time faster.
     index = np.flatnonzero(np.isfinite(depth) & (depth > min_depth) & (depth <= max_depth))
-    v, u = np.divmod(index, w)
+    v = index // w  # not np.divmod: NumPy divides by a scalar fast (libdivide) but takes a remainder ~4x slower
+    u = index - v * w
     z = depth.reshape(-1)[index]
     points = np.empty((len(index), 3))
     points[:, 0] = z * (u - intrinsics.cx) / intrinsics.fx
