@@ -55,7 +55,7 @@ from envs import trial as trial_lib
 from eval.numerics import numerics_label
 from eval.protocol import Decision, Method
 from sgjax.geometry.gripper import GripperSpec
-from sgjax.perception import PerceptionError
+from sgjax.perception import OTHER, PerceptionError
 
 LOG_VERSION = 1
 NO_OBJECT = "no_object"
@@ -199,6 +199,33 @@ def closing_region_objects(
     return {int(i): int(c) for i, c in zip(ids, counts)}
 
 
+CLEAN_SHARE = 0.8  # a cluster is one object when >= this share of it is that object and it holds >= this share of it
+
+
+def cluster_grade(points: np.ndarray, labels: np.ndarray, truth: np.ndarray, visible: np.ndarray, pose: np.ndarray,
+                  width: float, spec: GripperSpec) -> dict | None:
+    """How the cluster a grasp (pose [4, 4], width) was planned on matches the objects, against the exact
+    render: the method's points [P, 3], its labels [P] (objects > 0), the true object index at each of
+    those points' pixels truth [P] (-1: none), visible [n_objects]: each object's pixels in the frame.
+    The cluster is the label with the most points in the closing region. -> {"cluster", "points",
+    "object" (its most frequent true object, -1: none), "purity" (that object's share of it), "coverage"
+    (its share of that object's pixels), "grade": "clean" (both >= CLEAN_SHARE), "merged" (purity below),
+    "split" (coverage below)}; None when no cluster's point lies in the closing region."""
+    inside = closing_region_objects(points, np.where(labels > 0, labels, -1), pose, width, spec)
+    if not inside:
+        return None
+    cluster = max(inside, key=lambda k: (inside[k], -k))
+    mine = truth[labels == cluster]
+    ids, counts = np.unique(mine, return_counts=True)
+    best = int(np.argmax(np.where(ids >= 0, counts, -1)))  # the most frequent true object
+    obj = int(ids[best]) if ids[best] >= 0 else -1
+    purity = float(counts[best] / len(mine)) if obj >= 0 else 0.0
+    coverage = float(counts[best] / max(int(visible[obj]), 1)) if obj >= 0 else 0.0
+    grade = "merged" if purity < CLEAN_SHARE else "split" if coverage < CLEAN_SHARE else "clean"
+    return {"cluster": int(cluster), "points": int(len(mine)), "object": obj, "purity": round(purity, 4),
+            "coverage": round(coverage, 4), "grade": grade}
+
+
 def rigid_pose(pose, method_name: str) -> np.ndarray:
     """The method's pose as float64 [4, 4] with its rotation re-orthonormalised; ValueError if unusable."""
     pose = np.asarray(pose, np.float64)
@@ -259,13 +286,17 @@ def make_benchmark_scene(objects: Sequence, n_objects: int, seed: int, index: in
 class View(NamedTuple):
     """What a method sees of a scene (`observe`): obs (the exact observation, which decides the
     outcome), points [P, 3], labels [P], info (the front end's {"objects_found", "table" plane}, else
-    {}), joined (points [Q, 3], labels [Q]) of the frame's joined hypothesis, or None."""
+    {}), joined (points [Q, 3], labels [Q], truth [Q]) of the frame's joined hypothesis, or None;
+    through a sensor, truth [P]: the exact render's object index at each point's pixel (-1: none), and
+    visible int [n]: each object's points in the whole frame (`cluster_grade`); else None."""
 
     obs: camera_lib.Observation
     points: np.ndarray
     labels: np.ndarray
     info: dict
-    joined: tuple[np.ndarray, np.ndarray] | None = None
+    joined: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+    truth: np.ndarray | None = None
+    visible: np.ndarray | None = None
 
 
 def observe(scene, config: DeclutterConfig, seed: int) -> View:
@@ -283,11 +314,13 @@ def observe(scene, config: DeclutterConfig, seed: int) -> View:
         return View(obs, np.zeros((0, 3), np.float32), np.zeros(0, np.int32), {"front_end": str(exc)})
     points, labels = frame.table_and_objects()
     info = {"objects_found": len(frame.object_ids), "table": [round(v, 5) for v in frame.table.plane]}
+    truth = obs.labels[frame.pixels[:, 0], frame.pixels[:, 1]]  # as table_and_objects keeps the points
     joined = None
     if frame.has_joined:
         joined_points, joined_labels = frame.joined().table_and_objects()
-        joined = (joined_points.astype(np.float32), joined_labels)
-    return View(obs, points.astype(np.float32), labels, info, joined)
+        joined = (joined_points.astype(np.float32), joined_labels, truth[frame.joined_labels != OTHER])
+    visible = np.bincount(truth[truth >= 0], minlength=len(scene.present))
+    return View(obs, points.astype(np.float32), labels, info, joined, truth[frame.labels != OTHER], visible)
 
 
 def _decide(method: Method, points, labels, viewpoint, seed: int, avoid) -> Decision:
@@ -316,7 +349,8 @@ def run_scene(
     "avoided" (failed poses handed to the method), "observe_s", "trial_s", "settle_s" (the scene's update
     after the trial: the object removed or the scene left as the trial left it, re-settled), "info"}; a simulated attempt
     that failed also has "contacts": what the gripper touched in the phase that decided it
-    (`envs.trial.what_touched`: {"phase", "table", "objects" {object: "finger" | "palm" | "finger+palm"}}).
+    (`envs.trial.what_touched`: {"phase", "table", "objects" {object: "finger" | "palm" | "finger+palm"}});
+    with clustered masks, "segment": how the cluster planned on matches the objects (`cluster_grade`).
     """
     start = time.perf_counter()
     config = config or DeclutterConfig()
@@ -343,7 +377,8 @@ def run_scene(
             end = "attempt_cap"
             break
         t0 = time.perf_counter()
-        obs, points, labels, seen, joined = observe(scene, config, s_seed + len(attempts))
+        view = observe(scene, config, s_seed + len(attempts))
+        obs, points, labels, seen, joined, truth = view[:6]
         observe_s = time.perf_counter() - t0
         first = obs if first is None else first
         if ground_truth:
@@ -355,11 +390,12 @@ def run_scene(
         avoid = np.asarray(failed, np.float64).reshape(-1, 4, 4) if memory else None
         decision: Decision = _decide(method, points, labels, viewpoint, p_seed, avoid)
         if decision.pose is None and joined is not None:  # the frame's joined hypothesis (module doc)
-            second = _decide(method, *joined, viewpoint, p_seed, avoid)
+            second = _decide(method, *joined[:2], viewpoint, p_seed, avoid)
             # Both plans' time counts: the first one ran before the second.
             timing = {k: v + decision.timing.get(k, 0.0) if isinstance(v, float) else v for k, v in second.timing.items()}
             if second.pose is not None:
                 decision, seen = dataclasses.replace(second, timing=timing), {**seen, "labels": "joined"}
+                points, labels, truth = joined
             else:
                 decision = dataclasses.replace(decision, timing=timing, reason=f"{decision.reason or 'no grasp'}; on "
                                                f"the joined fragments: {second.reason or 'no grasp'}")
@@ -388,6 +424,8 @@ def run_scene(
         }
         if seen:
             record["seen"] = seen
+        if config.masks == "clusters" and truth is not None:
+            record["segment"] = cluster_grade(points, labels, truth, view.visible, pose, width, spec)
         attempts.append(record)
         candidates = {k: v for k, v in counts.items() if scene.present[k]}
         if not candidates:

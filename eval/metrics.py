@@ -175,6 +175,26 @@ def failure_breakdown(logs: Iterable[Mapping]) -> dict[str, collections.Counter]
     return out
 
 
+SEGMENT_GRADES = ("clean", "merged", "split", "none")
+
+
+def segment_breakdown(logs: Iterable[Mapping]) -> dict[str, tuple[int, int]] | None:
+    """Attempts planned on segmented clusters, by how the cluster matched the objects (the attempt's
+    "segment" grade, `eval.declutter.cluster_grade`; "none": no cluster's point between the fingers):
+    {grade: (attempts, successes)} over SEGMENT_GRADES; None when no attempt was graded (true masks)."""
+    out = {grade: [0, 0] for grade in SEGMENT_GRADES}
+    graded = False
+    for log in logs:
+        for attempt in log["attempts"]:
+            if "segment" not in attempt:
+                continue
+            graded = True
+            grade = (attempt["segment"] or {"grade": "none"})["grade"]
+            out[grade][0] += 1
+            out[grade][1] += bool(attempt["success"])
+    return {grade: (n, s) for grade, (n, s) in out.items()} if graded else None
+
+
 @dataclasses.dataclass
 class ObjectCounts:
     """One object's part in a set of scenes: in how many scenes' tasks it was (`scenes`, counted once per

@@ -245,6 +245,21 @@ def failures_markdown(logs: Iterable[Mapping]) -> str:
     return "\n".join(lines)
 
 
+def segments_markdown(logs: Iterable[Mapping]) -> str:
+    """Per (method, setting, seed) run with segmented masks: its attempts by how the cluster planned on
+    matched the objects (`metrics.segment_breakdown`), "attempts, GSR" each; "" when no run had them."""
+    head = ["Method", "Setting", "N", *metrics.SEGMENT_GRADES]
+    rows = []
+    groups = _group(logs)
+    methods, settings = _method_order(k[0] for k in groups), _setting_order(k[1] for k in groups)
+    for key in sorted(groups, key=lambda k: (methods.index(k[0]), settings.index(k[1]), k[2])):
+        b = metrics.segment_breakdown(groups[key])
+        if b is not None:
+            cells = [f"{n}, {percent(s / n if n else None)}" if n else "–" for n, s in b.values()]
+            rows.append([key[0], key[1], len(groups[key]), *cells])
+    return markdown_table(head, rows) if rows else ""
+
+
 def object_outcomes_markdown(logs: Iterable[Mapping], top: int = 12) -> str:
     """Per setting, the `top` objects most often not grasped (then most failed on) over its cells, with
     per method (seeds pooled) "not grasped / in scenes, failed grasps" (`metrics.object_breakdown`);
@@ -312,6 +327,15 @@ def _csv(rows: list[dict]) -> str:
     return buffer.getvalue()
 
 
+def _segments_section(logs: Iterable[Mapping]) -> str:
+    table = segments_markdown(logs)
+    if not table:
+        return ""
+    return ("With segmented masks (`--masks clusters`), attempts by the cluster they were planned on, against the exact "
+            "render's objects: clean (one object, >= 80 % of it), merged (< 80 % one object), split (< 80 % of its "
+            "object), none (no cluster between the fingers); attempts, GSR:\n\n" f"{table}\n\n")
+
+
 def write_tables(out: str | os.PathLike, machine: str = "") -> dict[str, Path]:
     """Recompute results.csv, timing.csv and results.md from every log under OUT -> their paths."""
     out = Path(out)
@@ -347,6 +371,7 @@ def write_tables(out: str | os.PathLike, machine: str = "") -> dict[str, Path]:
         "Objects by how often they were not grasped (left at the end, or fallen off the table) and failed "
         "on, seeds pooled:\n\n"
         f"{object_outcomes_markdown(logs)}\n\n"
+        f"{_segments_section(logs)}"
         "## What a run costs\n\n"
         "Mean wall seconds per attempt of the harness's own steps (rendering the observation, the grasp "
         "trial, re-settling the scene after it; trial and re-settle over simulated attempts) beside the "

@@ -796,3 +796,72 @@ def test_a_run_is_named_after_its_setting_objects_and_view():
     assert real.label("unseen", 10, "stereo+clusters") == "real-novel"
     assert real.label("mymeshes", 10, "stereo+clusters", replaced=True) == "real-novel-mymeshes"
     assert real.label("unseen", 4, "stereo+clusters", custom=True) == "unseen-4@stereo+clusters"  # not its scenes
+
+
+def test_cluster_grade_tells_clean_merged_and_split_clusters_apart():
+    """The cluster a grasp was planned on, graded against the true objects: a grasp at the origin
+    (closing along x, approaching along +z) on cluster 1 of 100 points; true object 0 holds 90 of them and
+    has 100 points in the frame: clean; the same cluster 70 % object 0: merged; one of object 0's 400
+    points: split; a grasp on no cluster's points: None."""
+    spec = GripperSpec()
+    pose = np.eye(4)
+    rng = np.random.default_rng(0)
+    inside = rng.uniform([-0.01, -0.005, 0.005], [0.01, 0.005, 0.03], (100, 3))  # in the closing region
+    far = inside + [0.5, 0.0, 0.0]
+    points = np.concatenate([inside, far])
+    labels = np.r_[np.ones(100, int), np.full(100, 2)]  # cluster 1 under the grasp, 2 far away
+    truth = np.r_[np.zeros(90, int), np.ones(10, int), np.full(100, 2)]
+    grade = declutter.cluster_grade(points, labels, truth, np.array([100, 10, 100]), pose, 0.04, spec)
+    assert grade == {"cluster": 1, "points": 100, "object": 0, "purity": 0.9, "coverage": 0.9, "grade": "clean"}
+    truth[:30] = 1  # 70 % object 0
+    assert declutter.cluster_grade(points, labels, truth, np.array([100, 40, 100]), pose, 0.04, spec)["grade"] == "merged"
+    truth[:30] = 0
+    split = declutter.cluster_grade(points, labels, truth, np.array([400, 10, 100]), pose, 0.04, spec)
+    assert split["grade"] == "split" and split["coverage"] == pytest.approx(90 / 400)
+    moved = np.eye(4)
+    moved[:3, 3] = [0.0, 0.3, 0.0]  # nothing there
+    assert declutter.cluster_grade(points, labels, truth, np.array([100, 10, 100]), moved, 0.04, spec) is None
+
+
+class OnCluster(Recorder):
+    """A top-down grasp through the middle of the largest cluster (label 1), the hand open."""
+
+    name = "on-cluster"
+
+    def plan(self, points, labels, viewpoint, seed=0):
+        self.seen.append((np.array(points), np.array(labels)))
+        mine = np.asarray(points)[np.asarray(labels) == 1]
+        if not len(mine):
+            return Decision(None, 0.0, 0.0, "no cluster", timing())
+        pose = np.eye(4)
+        pose[:3, :3] = np.diag([1.0, -1.0, -1.0])  # approach straight down
+        pose[:3, 3] = [*np.median(mine[:, :2], 0), mine[:, 2].max() + 0.005]
+        return Decision(pose, 0.08, 0.5, "", timing())
+
+
+def test_with_clusters_the_log_grades_the_cluster_each_grasp_was_planned_on(objects):
+    """Through the RealSense model with clusters, each attempt's "segment" grades the cluster planned on
+    against the exact render (`cluster_grade`): the largest cluster, mostly the object the grasp was
+    judged to be on; with true masks there is no grade."""
+    config = dataclasses.replace(CONFIG, sensor="realsense", masks="clusters", extra_attempts=0)
+    run = run_scene(OnCluster(), objects, N_OBJECTS, seed=0, index=0, config=config, setting="tiny-4")
+    first = run.log["attempts"][0]
+    segment = first["segment"]
+    assert segment["cluster"] == 1 and segment["grade"] in ("clean", "merged", "split")
+    assert segment["object"] == first["target"] and 0.5 < segment["purity"] <= 1 and 0 < segment["coverage"] <= 1
+    json.dumps(run.log)  # the log stays JSON
+    run = run_scene(OnCluster(), objects, N_OBJECTS, seed=0, index=0, config=dataclasses.replace(config, masks="truth"),
+                    setting="tiny-4")
+    assert "segment" not in run.log["attempts"][0]
+
+
+def test_attempts_are_counted_by_the_grade_of_the_cluster_they_were_planned_on():
+    a = log(4, "sffs", method="supergrasp", setting="seen-10@realsense+clusters", seed=0)
+    b = log(2, "sf", method="supergrasp", setting="seen-10@realsense+clusters", seed=0)
+    for attempt, grade in zip(a["attempts"] + b["attempts"], ["clean", "merged", None, "clean", "split", "clean"]):
+        attempt["segment"] = None if grade is None else {"grade": grade}
+    assert metrics.segment_breakdown([a, b]) == {"clean": (3, 2), "merged": (1, 0), "split": (1, 1), "none": (1, 0)}
+    assert metrics.segment_breakdown([log(2, "sf", method="m", setting="seen-10", seed=0)]) is None  # true masks
+    table = report.segments_markdown([a, b, log(2, "sf", method="gpd", setting="seen-10", seed=0)])
+    assert "| supergrasp | seen-10@realsense+clusters | 2 | 3, 66.67% | 1, 0.00% | 1, 100.00% | 1, 0.00% |" in table
+    assert "gpd" not in table and report.segments_markdown([log(2, "sf", method="m", setting="s", seed=0)]) == ""
