@@ -378,7 +378,7 @@ def run_scene(
             break
         t0 = time.perf_counter()
         view = observe(scene, config, s_seed + len(attempts))
-        obs, points, labels, seen, joined, truth = view[:6]
+        obs, points, labels, seen, joined, truth = view.obs, view.points, view.labels, view.info, view.joined, view.truth
         observe_s = time.perf_counter() - t0
         first = obs if first is None else first
         if ground_truth:

@@ -173,9 +173,8 @@ def point_image(points: np.ndarray, index: np.ndarray, image_size: tuple[int, in
 def smooth_normals(image: np.ndarray, valid: np.ndarray, viewpoint, window: int, span: int) -> np.ndarray:
     """Unit surface normals [3, H, W] (channel-first) of a point image [3, H, W] whose invalid pixels
     hold 0, as `point_image` leaves them (its valid [H, W] pixels averaged over window x window,
-    tangents over +-span pixels): sensor noise on one pixel tilts
-    a normal by tens of degrees, these by a few. Each normal points out of its surface, towards
-    viewpoint [3] (the camera)."""
+    tangents over +-span pixels): sensor noise on one pixel tilts a normal by tens of degrees, these by
+    a few. Each normal points out of its surface, towards viewpoint [3] (the camera)."""
     from scipy.ndimage import uniform_filter
 
     weight = uniform_filter(valid.astype(np.float32), window)
@@ -206,8 +205,8 @@ def _dot(a, b) -> np.ndarray:
 def image_clusters(image: np.ndarray, member: np.ndarray, normals: np.ndarray, tolerance: np.ndarray,
                    concave_deg: float, span: int, creases: list | None = None) -> np.ndarray:
     """Connected components [H, W] (int, -1 off `member`) of the member pixels of a point image [3, H, W]
-    with normals [3, H, W] (channel-first, as `point_image` and `smooth_normals` give them), where two 4-neighbours
-    are joined when they lie within the first one's `tolerance` [H, W] of each other and no concave
+    with normals [3, H, W] (channel-first, as `point_image` and `smooth_normals` give them), where two
+    4-neighbours are joined when they lie within the first one's `tolerance` [H, W] of each other and no concave
     crease runs between the surfaces on their two sides (the normals `span` pixels before the first and
     after the second; LCCP's test: (n_a - n_b) . (p_a - p_b) < 0, and the normals more than concave_deg
     apart). creases: a list that receives the pairs a crease parted, as (first, second) flat pixel
