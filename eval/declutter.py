@@ -55,7 +55,7 @@ from envs import trial as trial_lib
 from eval.numerics import numerics_label
 from eval.protocol import Decision, Method
 from sgjax.geometry.gripper import GripperSpec
-from sgjax.perception import OTHER, PerceptionError
+from sgjax.perception import PerceptionError
 
 LOG_VERSION = 1
 NO_OBJECT = "no_object"
@@ -314,13 +314,14 @@ def observe(scene, config: DeclutterConfig, seed: int) -> View:
         return View(obs, np.zeros((0, 3), np.float32), np.zeros(0, np.int32), {"front_end": str(exc)})
     points, labels = frame.table_and_objects()
     info = {"objects_found": len(frame.object_ids), "table": [round(v, 5) for v in frame.table.plane]}
-    truth = obs.labels[frame.pixels[:, 0], frame.pixels[:, 1]]  # as table_and_objects keeps the points
+    truth = obs.labels[frame.pixels[:, 0], frame.pixels[:, 1]]  # of every point of the frame
     joined = None
     if frame.has_joined:
-        joined_points, joined_labels = frame.joined().table_and_objects()
-        joined = (joined_points.astype(np.float32), joined_labels, truth[frame.joined_labels != OTHER])
+        second = frame.joined()
+        joined_points, joined_labels = second.table_and_objects()
+        joined = (joined_points.astype(np.float32), joined_labels, truth[second.planned])
     visible = np.bincount(truth[truth >= 0], minlength=len(scene.present))
-    return View(obs, points.astype(np.float32), labels, info, joined, truth[frame.labels != OTHER], visible)
+    return View(obs, points.astype(np.float32), labels, info, joined, truth[frame.planned], visible)
 
 
 def _decide(method: Method, points, labels, viewpoint, seed: int, avoid) -> Decision:
@@ -424,7 +425,7 @@ def run_scene(
         }
         if seen:
             record["seen"] = seen
-        if config.masks == "clusters" and truth is not None:
+        if config.masks == "clusters":  # through a sensor: the front end gave truth, or the scene ended above
             record["segment"] = cluster_grade(points, labels, truth, view.visible, pose, width, spec)
         attempts.append(record)
         candidates = {k: v for k, v in counts.items() if scene.present[k]}

@@ -69,11 +69,16 @@ class Frame:
         """[n, 3] the points of object `object_id`."""
         return self.points[self.labels == object_id]
 
+    @property
+    def planned(self) -> np.ndarray:
+        """bool [N]: the points a planner is handed (`table_and_objects`), those of the table and the objects."""
+        return self.labels != OTHER
+
     def table_and_objects(self) -> tuple[np.ndarray, np.ndarray]:
         """What a planner is handed: the points [M, 3] of the table and the objects and their labels [M]
         (TABLE, 1..K); the rest (noise above the table, anything below or beyond it) would be taken for
         obstacles. The joined hypothesis': `frame.joined().table_and_objects()`."""
-        keep = self.labels != OTHER
+        keep = self.planned
         return self.points[keep], self.labels[keep]
 
     def joined(self) -> Frame:
