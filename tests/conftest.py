@@ -5,10 +5,14 @@ from __future__ import annotations
 import os
 
 # The suite is dominated by XLA compiling (each test compiles its own small shapes once) rather than by
-# running the compiled code, so on CPU the tests ask LLVM for cheaper code generation: ~40 % less
-# compile time, the same computation (no fast-math: results do not change). Set before JAX is imported;
-# subprocesses started by tests (the CLI, the notebook kernel) inherit it. A user's own XLA_FLAGS wins.
-os.environ.setdefault("XLA_FLAGS", "--xla_llvm_disable_expensive_passes=true --xla_backend_optimization_level=0")
+# running the compiled code, so on CPU the tests ask for cheaper code generation: LLVM's cheap passes
+# (~40 % less compile time) and XLA:CPU's older loop emitters instead of its MLIR fusion emitters (about
+# half the compile time again: a fresh process's first plan 97 -> 62 s, one test 90 -> 52 s, the plans
+# as fast after; docs/experiments.md, 2026-12-06). Neither is fast-math: the same operations, perhaps
+# rounded in another order. Set before JAX is imported; subprocesses started by tests (the CLI, the
+# notebook kernel) inherit it. A user's own XLA_FLAGS wins.
+os.environ.setdefault("XLA_FLAGS", "--xla_llvm_disable_expensive_passes=true --xla_backend_optimization_level=0 "
+                                   "--xla_cpu_use_fusion_emitters=false")
 
 import gc  # noqa: E402
 
