@@ -145,16 +145,30 @@ def over_table(points: np.ndarray, corners: np.ndarray, normal: np.ndarray) -> n
 
 def in_convex_polygon(points: np.ndarray, corners: np.ndarray) -> np.ndarray:
     """Which 2-D points [N, 2] lie inside (or on) the convex polygon of corners [C, 2] (counter-clockwise,
-    C >= 3) -> bool [N]. Each point is tested against the one edge facing it from the corners' mean (its
-    wedge, by a binary search on the angle about it): N log C, where a general point-in-polygon test costs
-    N x C (a table's extent has tens of corners)."""
+    C >= 3) -> bool [N]. Points inside the polygon's inscribed circle about the corners' mean are in and
+    points outside its bounding box out, without more ado (most of a frame's points, in a small share of
+    the time); each other point is tested against the one edge facing it from that mean (its wedge, by a
+    binary search on the angle about it): N log C, where a general point-in-polygon test costs N x C (a
+    table's extent has tens of corners)."""
     centre = corners.mean(0)  # inside a convex polygon
+    # A column at a time: NumPy is slow over narrow [N, 2] arrays.
+    x, y = points[:, 0] - centre[0], points[:, 1] - centre[1]
+    edges = np.roll(corners, -1, 0) - corners
+    # The distance from the centre to the nearest edge's line, a thousandth short, so that no point
+    # the edge test would put on the boundary counts as inside the circle.
+    radius = 0.999 * np.min((edges[:, 0] * (centre[1] - corners[:, 1]) - edges[:, 1] * (centre[0] - corners[:, 0]))
+                            / np.hypot(edges[:, 0], edges[:, 1]))
+    inside = x * x + y * y < radius * radius
+    low, high = corners.min(0) - centre, corners.max(0) - centre
+    rest = np.flatnonzero(~inside & (x >= low[0]) & (x <= high[0]) & (y >= low[1]) & (y <= high[1]))
     angle = np.arctan2(corners[:, 1] - centre[1], corners[:, 0] - centre[0])
     start = int(np.argmin(angle))  # counter-clockwise from the smallest angle: increasing angles
     corners, angle = np.roll(corners, -start, 0), np.roll(angle, -start)
-    wedge = np.searchsorted(angle, np.arctan2(points[:, 1] - centre[1], points[:, 0] - centre[0]), side="right") - 1
+    px, py = points[rest, 0], points[rest, 1]
+    wedge = np.searchsorted(angle, np.arctan2(py - centre[1], px - centre[0]), side="right") - 1
     a, b = corners[wedge], corners[(wedge + 1) % len(corners)]  # wedge -1: between the last corner and the first
-    return (b[:, 0] - a[:, 0]) * (points[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (points[:, 0] - a[:, 0]) >= 0
+    inside[rest] = (b[:, 0] - a[:, 0]) * (py - a[:, 1]) - (b[:, 1] - a[:, 1]) * (px - a[:, 0]) >= 0
+    return inside
 
 
 def point_image(points: np.ndarray, index: np.ndarray, image_size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
@@ -353,11 +367,11 @@ def _segment(points, pixels, image_size, table: TablePlane, viewpoint, pixel_ang
     normals = smooth_normals(image, valid, viewpoint, config.normal_window, config.normal_span)
     ray = [image[k] - np.float32(viewpoint[k]) for k in range(3)]
     tolerance = link_tolerance(np.sqrt(_dot(ray, ray)), pixel_angle, noise, config).astype(np.float32)
-    creases: list | None = [] if joined else None
+    creases: list = []  # `_continues_below` and the joined hypothesis need them
     components = image_clusters(image, member, normals, tolerance, config.concave_deg, config.normal_span, creases)
     level = np.zeros(member.shape)
     level.reshape(-1)[box_index] = height[box]
-    below = _continues_below(image, valid, member, level, normals, tolerance, threshold, table.normal, config.normal_span)
+    below = _continues_below(image, valid, member, components, creases, level, normals, tolerance, threshold, table.normal)
     below = below.reshape(-1)[above_index]
     first = labels.copy()
     first[above] = _numbered(components.reshape(-1)[above_index], below, config.min_points)
@@ -385,15 +399,49 @@ def _numbered(components: np.ndarray, below: np.ndarray, min_points: int) -> np.
     return new_id[cluster]
 
 
-def _continues_below(image, valid, member, level, normals, tolerance, threshold, normal, span) -> np.ndarray:
+def _continues_below(image, valid, member, components, creases, level, normals, tolerance, threshold, normal
+                     ) -> np.ndarray:
     """Which member pixels [h, w] belong to a surface that goes on below the table (a robot's stand, a
     table leg, the table's own edge): linked (as in `image_clusters`, creases aside) through the points
     at table height that are not the table's top (normals more than 45 deg off its normal) to points
     1.5-5 cm below it (deeper than any sensor's noise on the table). Nothing standing on the table does
-    that. level [h, w]: heights above it."""
+    that. components [h, w], creases: `image_clusters`' of the members; level [h, w]: heights above the
+    table."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
     under = valid & (level <= -DEEP) & (level >= -0.05)
     if not under.any():
         return np.zeros(member.shape, bool)
     band = valid & (level > -DEEP) & (level <= threshold) & (np.abs(_dot(normals, np.asarray(normal, np.float32))) < np.cos(np.deg2rad(45.0)))
-    components = image_clusters(image, member | band | under, normals, tolerance, 180.0, span)
-    return member & np.isin(components, np.unique(components[under]))
+    # The members' links are known: their components and the pairs a crease parted. Only the links that
+    # reach the band or the points below are tested here, and the components are joined over a graph
+    # of the members' components and those pixels (labelling the whole box once more costs several
+    # times as much).
+    other = band | under  # no member is at table height or below
+    h, w = member.shape
+    flat = components.reshape(-1)
+    n_components = int(flat.max()) + 1
+    others = np.flatnonzero(other.reshape(-1))
+    node = np.where(member.reshape(-1), flat, -1)
+    node[others] = n_components + np.arange(len(others))
+    reach = member | other
+    first_nodes, second_nodes = [], []
+    for dr, dc in ((0, 1), (1, 0)):
+        first, second = np.s_[:h - dr, :w - dc], np.s_[dr:, dc:]
+        step = [image[k][first] - image[k][second] for k in range(3)]
+        linked = (reach[first] & reach[second] & (other[first] | other[second])
+                  & (_dot(step, step) <= tolerance[first] ** 2))
+        r, c = np.nonzero(linked)
+        first_nodes.append(node[r * w + c])
+        second_nodes.append(node[(r + dr) * w + c + dc])
+    for a, b in creases:
+        first_nodes.append(flat[a])
+        second_nodes.append(flat[b])
+    first_nodes, second_nodes = np.concatenate(first_nodes), np.concatenate(second_nodes)
+    n = n_components + len(others)
+    graph = coo_matrix((np.ones(len(first_nodes)), (first_nodes, second_nodes)), shape=(n, n))
+    _, group = connected_components(graph, directed=False)
+    reaches_below = np.zeros(n, bool)
+    reaches_below[group[node[np.flatnonzero(under.reshape(-1))]]] = True
+    return member & reaches_below[group[np.maximum(components, 0)]]
