@@ -234,6 +234,43 @@ def test_image_clusters_match_the_definition_pair_by_pair():
             assert found == parted and (len(parted) > 0) == (concave_deg < 180.0)
 
 
+def test_what_goes_on_below_the_table_is_the_members_linked_to_points_below_it():
+    """`_continues_below` (the members' components and creases joined with the band and the points below
+    over a graph) against its definition: the components of members, band and points below linked without
+    the crease test (`image_clusters` at 180 deg, checked pair by pair above) that hold a point below."""
+    from sgjax.perception.segment import DEEP, _continues_below, image_clusters, smooth_normals
+
+    rng = np.random.default_rng(11)
+    h, w, span, threshold = 23, 31, 2, 0.004
+    table_normal = np.array([1.0, 0.0, 0.0])  # most normals here face the camera: the band is not empty
+    some, whole = 0, 0
+    for trial in range(12):
+        yy, xx = np.mgrid[:h, :w].astype(np.float32)
+        depth = np.where(xx < w // 2, 1.0 + 0.01 * yy, 1.05 - 0.02 * xx / w) + rng.normal(0, 0.002, (h, w))
+        image = np.stack([xx * 0.003, yy * 0.003, depth]).astype(np.float32)
+        valid = rng.random((h, w)) < 0.95
+        image[:, ~valid] = 0.0
+        normals = smooth_normals(image, valid, np.zeros(3), 3, span)
+        tolerance = np.full((h, w), 0.004, np.float32)
+        kind = rng.random((h, w))
+        member = valid & (kind < 0.55)
+        level = np.where(member, 0.05, np.where(kind < 0.55 + 0.1 * (trial % 3), -0.03, 0.0))
+        level[~valid] = 0.0
+        creases: list = []
+        components = image_clusters(image, member, normals, tolerance, 30.0, span, creases)
+        got = _continues_below(image, valid, member, components, creases, level, normals, tolerance, threshold,
+                               table_normal)
+        under = valid & (level <= -DEEP) & (level >= -0.05)
+        band = valid & (level > -DEEP) & (level <= threshold) & (np.abs(np.einsum("khw,k->hw", normals, table_normal))
+                                                                 < np.cos(np.deg2rad(45.0)))
+        linked = image_clusters(image, member | band | under, normals, tolerance, 180.0, span)
+        expected = member & np.isin(linked, linked[under]) if under.any() else np.zeros((h, w), bool)
+        np.testing.assert_array_equal(got, expected)
+        some += 0 < got.sum() < member.sum()
+        whole += len(creases) > 0
+    assert some >= 3 and whole >= 3  # members both ways, and creases the graph had to bridge
+
+
 def test_fragments_join_the_neighbour_they_share_the_most_creases_with():
     """`merge_fragments` on a hand-made partition: a fragment joins the component it shares the most crease
     links with, a group of fragments still too small goes on with the links of its parts, large components
