@@ -6,8 +6,10 @@ the last bits; where a plan is near a tie (two candidates scored alike, a point 
 threshold) the choice changes, and a scene's later attempts differ from there on. Measured on unseen-10,
 N = 30 (docs/benchmark.md, "Same seeds, another CPU"): the same code and seeds compiled for AVX2 instead
 of AVX-512 gave GSR 92.91 % instead of 90.67 %, 28 of the 30 scenes taking another grasp at some point.
-Outcomes repeat attempt for attempt only between runs whose `numerics_label` is equal; the benchmark
-records it in every scene log and lists it in results.md.
+XLA's own code-generation flags in `XLA_FLAGS` (e.g. `--xla_cpu_use_fusion_emitters=false`, which
+halves compile time) change the compiled programs as well: the same scenes then take other grasps after
+a few attempts (docs/experiments.md, 2026-12-06). Outcomes repeat attempt for attempt only between runs
+whose `numerics_label` is equal; the benchmark records it in every scene log and lists it in results.md.
 """
 
 from __future__ import annotations
@@ -59,7 +61,19 @@ def _cpu_flags() -> set[str]:
     return set()
 
 
+def code_flags(xla_flags: str | None = None) -> str:
+    """The XLA flags in `xla_flags` (default $XLA_FLAGS) that may change the compiled code, sorted, one
+    space apart: every --xla_* flag but the ISA cap, which `vector_isa` reports, and the host device count,
+    which splits the host rather than changing a program; "" for none."""
+    if xla_flags is None:
+        xla_flags = os.environ.get("XLA_FLAGS", "")
+    skipped = ("--xla_cpu_max_isa=", "--xla_force_host_platform_device_count=")
+    return " ".join(sorted(f for f in xla_flags.split() if f.startswith("--xla_") and not f.startswith(skipped)))
+
+
 @functools.lru_cache(maxsize=1)
 def numerics_label() -> str:
-    """One line naming what the results' rounding depends on: vector ISA, jaxlib and MuJoCo versions."""
-    return f"{vector_isa()}, jaxlib {_version('jaxlib')}, mujoco {_version('mujoco')}"
+    """One line naming what the results' rounding depends on: vector ISA, jaxlib and MuJoCo versions, and
+    XLA's code-generation flags when any are set (`code_flags`)."""
+    flags = code_flags()
+    return f"{vector_isa()}, jaxlib {_version('jaxlib')}, mujoco {_version('mujoco')}" + (f", XLA_FLAGS {flags}" if flags else "")

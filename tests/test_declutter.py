@@ -13,7 +13,7 @@ import pytest
 from envs.camera import CameraConfig
 from envs.objects import tiny_object_set
 from eval import declutter, metrics, report
-from eval.numerics import numerics_label, vector_isa
+from eval.numerics import code_flags, numerics_label, vector_isa
 from eval.benchmark import run_benchmark, run_key
 from eval.declutter import DeclutterConfig, run_scene
 from eval.methods import METHODS, MethodUnavailable, UnknownMethod, make_method
@@ -642,6 +642,13 @@ def test_vector_isa_is_the_cpus_widest_capped_by_xla_flags():
     assert vector_isa({"sse4_2"}, "") == "SSE4_2"
     label = numerics_label()
     assert "jaxlib" in label and "mujoco" in label
+    # XLA's code-generation flags are named (the suite sets some: tests/conftest.py), the ISA cap and the
+    # host device count are not.
+    assert code_flags("--xla_cpu_max_isa=AVX2 --xla_cpu_use_fusion_emitters=false --xla_backend_optimization_level=0 "
+                      "--xla_force_host_platform_device_count=2") == (
+        "--xla_backend_optimization_level=0 --xla_cpu_use_fusion_emitters=false")
+    assert code_flags("") == "" and code_flags("--xla_cpu_max_isa=AVX2") == ""
+    assert label.endswith(f", XLA_FLAGS {code_flags()}") if code_flags() else "XLA_FLAGS" not in label
 
 
 # ---------------------------------------------------------------------------------------------
