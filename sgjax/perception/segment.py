@@ -224,7 +224,7 @@ def image_clusters(image: np.ndarray, member: np.ndarray, normals: np.ndarray, t
     crease runs between the surfaces on their two sides (the normals `span` pixels before the first and
     after the second; LCCP's test: (n_a - n_b) . (p_a - p_b) < 0, and the normals more than concave_deg
     apart). creases: a list that receives the pairs a crease parted, as (first, second) flat pixel
-    indices int [L] each (`merge_fragments`)."""
+    indices int [L] each (`merge_fragments`, `_continues_below`)."""
     from scipy.ndimage import label
 
     h, w = member.shape
