@@ -238,7 +238,7 @@ def test_what_goes_on_below_the_table_is_the_members_linked_to_points_below_it()
     """`_continues_below` (the members' components and creases joined with the band and the points below
     over a graph) against its definition: the components of members, band and points below linked without
     the crease test (`image_clusters` at 180 deg, checked pair by pair above) that hold a point below."""
-    from sgjax.perception.segment import DEEP, _continues_below, image_clusters, smooth_normals
+    from sgjax.perception.segment import DEEP, _continues_below, image_clusters, smooth_normals, within_tolerance
 
     rng = np.random.default_rng(11)
     h, w, span, threshold = 23, 31, 2, 0.004
@@ -258,8 +258,8 @@ def test_what_goes_on_below_the_table_is_the_members_linked_to_points_below_it()
         level[~valid] = 0.0
         creases: list = []
         components = image_clusters(image, member, normals, tolerance, 30.0, span, creases)
-        got = _continues_below(image, valid, member, components, creases, level, normals, tolerance, threshold,
-                               table_normal)
+        got = _continues_below(valid, member, components, creases, level, normals, within_tolerance(image, tolerance),
+                               threshold, table_normal)
         under = valid & (level <= -DEEP) & (level >= -0.05)
         band = valid & (level > -DEEP) & (level <= threshold) & (np.abs(np.einsum("khw,k->hw", normals, table_normal))
                                                                  < np.cos(np.deg2rad(45.0)))

@@ -30,6 +30,7 @@ from sgjax.perception.table import TablePlane
 TABLE = -1  # label of table points
 DEEP = 0.015  # metres below the table: a surface reaching this deep goes on below the table
 OTHER = -2  # label of everything else that is no object: below or beyond the table, too small, too high
+NEIGHBOURS = ((0, 1), (1, 0))  # (rows, columns) to a pixel's right and its lower neighbour: the links tested
 
 
 @dataclasses.dataclass(frozen=True)
@@ -216,15 +217,30 @@ def _dot(a, b) -> np.ndarray:
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
+def within_tolerance(image: np.ndarray, tolerance: np.ndarray) -> list[np.ndarray]:
+    """Whether each pixel of a point image [3, H, W] and its right, then its lower neighbour lie within the
+    first one's `tolerance` [H, W] of each other -> [bool [H, W - 1], bool [H - 1, W]] (the neighbour pairs
+    in the order of `NEIGHBOURS`)."""
+    h, w = tolerance.shape
+    close = []
+    for dr, dc in NEIGHBOURS:
+        first, second = np.s_[:h - dr, :w - dc], np.s_[dr:, dc:]
+        # Dense over the box, a plane at a time: cheaper than gathering the members' points.
+        step = [image[k][first] - image[k][second] for k in range(3)]
+        close.append(_dot(step, step) <= tolerance[first] ** 2)
+    return close
+
+
 def image_clusters(image: np.ndarray, member: np.ndarray, normals: np.ndarray, tolerance: np.ndarray,
-                   concave_deg: float, span: int, creases: list | None = None) -> np.ndarray:
+                   concave_deg: float, span: int, creases: list | None = None, close: list | None = None) -> np.ndarray:
     """Connected components [H, W] (int, -1 off `member`) of the member pixels of a point image [3, H, W]
     with normals [3, H, W] (channel-first, as `point_image` and `smooth_normals` give them), where two
     4-neighbours are joined when they lie within the first one's `tolerance` [H, W] of each other and no concave
     crease runs between the surfaces on their two sides (the normals `span` pixels before the first and
     after the second; LCCP's test: (n_a - n_b) . (p_a - p_b) < 0, and the normals more than concave_deg
     apart). creases: a list that receives the pairs a crease parted, as (first, second) flat pixel
-    indices int [L] each (`merge_fragments`, `_continues_below`)."""
+    indices int [L] each (`merge_fragments`, `_continues_below`). close: `within_tolerance(image, tolerance)`
+    when the caller has it already."""
     from scipy.ndimage import label
 
     h, w = member.shape
@@ -235,11 +251,11 @@ def image_clusters(image: np.ndarray, member: np.ndarray, normals: np.ndarray, t
     # faster than a sparse graph's connected components).
     grid = np.zeros((2 * h - 1, 2 * w - 1), bool)
     grid[::2, ::2] = member
-    for dr, dc in ((0, 1), (1, 0)):
+    if close is None:
+        close = within_tolerance(image, tolerance)
+    for (dr, dc), near in zip(NEIGHBOURS, close):
         first, second = np.s_[:h - dr, :w - dc], np.s_[dr:, dc:]
-        # Dense over the box, a plane at a time: cheaper than gathering the members' points.
-        step = [image[k][first] - image[k][second] for k in range(3)]
-        linked = member[first] & member[second] & (_dot(step, step) <= tolerance[first] ** 2)
+        linked = member[first] & member[second] & near
         r, c = np.nonzero(linked)
         if cos_concave > -1.0:  # at 180 deg no crease separates (cos < -1 never holds): skip the normals
             a = np.clip(r - dr * span, 0, h - 1) * w + np.clip(c - dc * span, 0, w - 1)
@@ -368,10 +384,12 @@ def _segment(points, pixels, image_size, table: TablePlane, viewpoint, pixel_ang
     ray = [image[k] - np.float32(viewpoint[k]) for k in range(3)]
     tolerance = link_tolerance(np.sqrt(_dot(ray, ray)), pixel_angle, noise, config).astype(np.float32)
     creases: list = []  # `_continues_below` and the joined hypothesis need them
-    components = image_clusters(image, member, normals, tolerance, config.concave_deg, config.normal_span, creases)
+    close = within_tolerance(image, tolerance)  # both linkings test the same neighbour pairs
+    components = image_clusters(image, member, normals, tolerance, config.concave_deg, config.normal_span, creases,
+                                close)
     level = np.zeros(member.shape)
     level.reshape(-1)[box_index] = height[box]
-    below = _continues_below(image, valid, member, components, creases, level, normals, tolerance, threshold, table.normal)
+    below = _continues_below(valid, member, components, creases, level, normals, close, threshold, table.normal)
     below = below.reshape(-1)[above_index]
     first = labels.copy()
     first[above] = _numbered(components.reshape(-1)[above_index], below, config.min_points)
@@ -399,14 +417,13 @@ def _numbered(components: np.ndarray, below: np.ndarray, min_points: int) -> np.
     return new_id[cluster]
 
 
-def _continues_below(image, valid, member, components, creases, level, normals, tolerance, threshold, normal
-                     ) -> np.ndarray:
+def _continues_below(valid, member, components, creases, level, normals, close, threshold, normal) -> np.ndarray:
     """Which member pixels [h, w] belong to a surface that goes on below the table (a robot's stand, a
     table leg, the table's own edge): linked (as in `image_clusters`, creases aside) through the points
     at table height that are not the table's top (normals more than 45 deg off its normal) to points
     1.5-5 cm below it (deeper than any sensor's noise on the table). Nothing standing on the table does
     that. components [h, w], creases: `image_clusters`' of the members; level [h, w]: heights above the
-    table."""
+    table; close: `within_tolerance` of the point image."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
@@ -427,11 +444,9 @@ def _continues_below(image, valid, member, components, creases, level, normals, 
     node[others] = n_components + np.arange(len(others))
     reach = member | other
     first_nodes, second_nodes = [], []
-    for dr, dc in ((0, 1), (1, 0)):
+    for (dr, dc), near in zip(NEIGHBOURS, close):
         first, second = np.s_[:h - dr, :w - dc], np.s_[dr:, dc:]
-        step = [image[k][first] - image[k][second] for k in range(3)]
-        linked = (reach[first] & reach[second] & (other[first] | other[second])
-                  & (_dot(step, step) <= tolerance[first] ** 2))
+        linked = reach[first] & reach[second] & (other[first] | other[second]) & near
         r, c = np.nonzero(linked)
         first_nodes.append(node[r * w + c])
         second_nodes.append(node[(r + dr) * w + c + dc])
