@@ -305,3 +305,23 @@ def test_fragments_join_the_neighbour_they_share_the_most_creases_with():
     got = merge_fragments(components, creases, 25)[0]
     assert got[first_pixel[2]] == got[first_pixel[5]] not in (got[first_pixel[1]], got[first_pixel[3]])
     np.testing.assert_array_equal(merge_fragments(components, creases, 0), components)
+
+
+def test_specks_above_the_table_are_no_object_but_an_object_is():
+    """Pixels above the table in blocks too sparse, or in a group of blocks holding fewer than min_points
+    pixels in all, cannot form a kept cluster and are dropped before the box is chosen; an object's are kept."""
+    from sgjax.perception.segment import _in_object_blocks
+
+    rows, cols = np.mgrid[100:110, 200:210]  # an object: 100 pixels, 4 blocks
+    obj = np.stack([rows.ravel(), cols.ravel()], 1)
+    speck = np.array([[3, 3], [3, 5], [4, 4], [5, 3], [5, 5], [6, 6], [2, 2]])  # 7 pixels: one dense block
+    group = np.concatenate([speck + [0, 8 * k] for k in range(3)])  # three such blocks side by side: 21 < 50
+    sparse = np.array([[300, 600], [302, 602], [304, 604], [306, 606], [301, 605]])  # 5 pixels: a block < 50 / 8
+    big = np.concatenate([speck + [400, 8 * k] for k in range(8)])  # eight dense blocks in a row: 56 >= 50
+    pixels = np.concatenate([obj, group + [0, 400], sparse, big])
+    kept = _in_object_blocks(pixels[:, 0], pixels[:, 1], (480, 640), 50)
+    n = np.cumsum([len(obj), len(group), len(sparse), len(big)])
+    assert kept[:n[0]].all() and not kept[n[0]:n[2]].any() and kept[n[2]:].all()
+    # The same pixels one by one: the rule does not depend on what else is above the table elsewhere.
+    for part in np.split(np.arange(len(pixels)), n[:-1]):
+        assert np.array_equal(_in_object_blocks(pixels[part, 0], pixels[part, 1], (480, 640), 50), kept[part])

@@ -357,11 +357,8 @@ def _segment(points, pixels, image_size, table: TablePlane, viewpoint, pixel_ang
     above[above] = over_table(points[above], table_extent(points[table_rows], table.normal), table.normal)
     if not above.any():
         return labels, labels.copy() if joined else None
-    # Lone pixels above the table (the noise's tail) are no object: only 8x8-pixel blocks holding at
-    # least min_points / 8 of them count, so that the box looked at below is the objects', not the frame's.
     row, col = pixels[:, 0], pixels[:, 1]  # a column at a time: NumPy is slow over narrow [N, 2] arrays
-    block_index = (row[above] // 8) * (image_size[1] // 8 + 1) + col[above] // 8
-    above[above] = np.bincount(block_index)[block_index] >= max(1, config.min_points // 8)
+    above[above] = _in_object_blocks(row[above], col[above], image_size, config.min_points)
     if not above.any():
         return labels, labels.copy() if joined else None
     # Only the box of image rows and columns around the points above the table is looked at.
@@ -399,6 +396,26 @@ def _segment(points, pixels, image_size, table: TablePlane, viewpoint, pixel_ang
     merged = merge_fragments(components, creases, config.fragment_points)
     second[above] = _numbered(merged.reshape(-1)[above_index], below, config.min_points)
     return first, second
+
+
+def _in_object_blocks(row: np.ndarray, col: np.ndarray, image_size: tuple[int, int], min_points: int) -> np.ndarray:
+    """Which of the pixels above the table at (row [M], col [M]) may belong to an object -> bool [M]: those in
+    8x8-pixel blocks holding at least min_points / 8 of them, in a group of such blocks (8-connected) that
+    holds at least min_points. Lone pixels (the noise's tail) are no object, and no cluster of min_points
+    pixels spans two groups, so a smaller group would only give clusters that are dropped; without them the
+    box `_segment` looks at is the objects', not the frame's (a stereo camera's noise on a far table
+    scatters such specks over the whole image)."""
+    from scipy.ndimage import label
+
+    width = image_size[1] // 8 + 1
+    block = (row // 8) * width + col // 8
+    count = np.bincount(block, minlength=(image_size[0] // 8 + 1) * width)
+    dense = count >= max(1, min_points // 8)
+    groups, _ = label(dense.reshape(-1, width), structure=np.ones((3, 3)))
+    groups = groups.reshape(-1)
+    total = np.bincount(groups, weights=np.where(dense, count, 0))
+    total[0] = 0  # the blocks in no group
+    return total[groups[block]] >= min_points
 
 
 def _numbered(components: np.ndarray, below: np.ndarray, min_points: int) -> np.ndarray:
