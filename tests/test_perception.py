@@ -325,3 +325,40 @@ def test_specks_above_the_table_are_no_object_but_an_object_is():
     # The same pixels one by one: the rule does not depend on what else is above the table elsewhere.
     for part in np.split(np.arange(len(pixels)), n[:-1]):
         assert np.array_equal(_in_object_blocks(pixels[part, 0], pixels[part, 1], (480, 640), 50), kept[part])
+
+
+@pytest.mark.parametrize("n", [1, 2, 7, 300])
+def test_the_lowest_node_of_each_set_matches_a_graphs_connected_components(n):
+    """`_lowest_in_set` (pointer doubling over a graph of one edge per node) against scipy's connected
+    components of the same undirected graph, relabelled by each set's lowest node."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    from sgjax.perception.segment import _lowest_in_set
+
+    rng = np.random.default_rng(n)
+    for _ in range(20):
+        target = rng.integers(0, n, n)
+        alone = rng.random(n) < 0.3
+        target[alone] = np.flatnonzero(alone)  # nodes without an edge point at themselves
+        _, sets = connected_components(coo_matrix((np.ones(n), (np.arange(n), target)), shape=(n, n)), directed=False)
+        lowest = np.array([np.flatnonzero(sets == sets[i])[0] for i in range(n)])
+        np.testing.assert_array_equal(_lowest_in_set(target), lowest)
+
+
+def test_far_apart_groups_are_looked_at_in_boxes_of_their_own():
+    """`_boxes`: each group of pixels above the table gets the box of its pixels and the margin around them;
+    groups whose boxes would overlap share one; every pixel lies in exactly one box."""
+    from sgjax.perception.segment import _boxes
+
+    objects = np.stack(np.mgrid[200:260, 250:330].reshape(2, -1), 1)  # the objects near the image's middle
+    stand = np.stack(np.mgrid[0:60, 600:640].reshape(2, -1), 1)  # a robot's stand in a corner
+    near = np.stack(np.mgrid[262:270, 340:350].reshape(2, -1), 1)  # a piece within the objects' margin
+    pixels = np.concatenate([objects, stand, near])
+    boxes = _boxes(pixels[:, 0], pixels[:, 1], (480, 640), 10)
+    assert [(lo.tolist(), hi.tolist()) for lo, hi in boxes] == [([0, 590], [70, 640]), ([190, 240], [280, 360])]
+    inside = [((pixels >= lo) & (pixels < hi)).all(1) for lo, hi in boxes]
+    assert (np.sum(inside, 0) == 1).all()
+    # One group alone: its bounding box and the margin, clipped to the image.
+    [(lo, hi)] = _boxes(stand[:, 0], stand[:, 1], (480, 640), 10)
+    assert lo.tolist() == [0, 590] and hi.tolist() == [70, 640]

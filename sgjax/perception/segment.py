@@ -281,9 +281,6 @@ def merge_fragments(components: np.ndarray, creases: list, min_points: int) -> n
     group of fragments still too small goes on as one. -> int [H, W], -1 off the members. On a small
     object a sensor's noise makes spurious creases (studs, rims, handles) that cut it into pieces; two
     objects touching in a pile meet in a crease as well, but each is rarely that small."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
     if min_points <= 0 or not creases:
         return components
     flat = components.reshape(-1)
@@ -311,14 +308,30 @@ def merge_fragments(components: np.ndarray, creases: list, min_points: int) -> n
         order = np.lexsort((target, -count, source))
         source, target = source[order], target[order]
         best = np.flatnonzero(np.r_[True, source[1:] != source[:-1]])
-        joined = coo_matrix((np.ones(len(best)), (source[best], target[best])), shape=(n, n))
-        _, merged = connected_components(joined, directed=False)
+        target_of = np.arange(n)
+        target_of[source[best]] = target[best]
         # Relabel by each merged set's lowest group id, so labels stay those of image_clusters' components.
-        lowest = np.full(n, n)
-        np.minimum.at(lowest, merged, np.arange(n))
-        group = lowest[merged[group]]
+        group = _lowest_in_set(target_of)[group]
         size = np.bincount(group, weights=pixels, minlength=n)
     return np.where(components >= 0, group[np.maximum(components, 0)], -1)
+
+
+def _lowest_in_set(target: np.ndarray) -> np.ndarray:
+    """For a graph in which each node i [n] has one edge, to target[i] (itself: none), the lowest node of
+    each node's connected set -> int [n]. Each such set holds one cycle (a node pointing at itself is
+    one): by pointer doubling every node finds a node of its cycle and that cycle's lowest node (NumPy
+    over [n] arrays, log n rounds; a sparse graph's connected components cost some 30x as much here)."""
+    n = len(target)
+    step, lowest = target.copy(), np.minimum(np.arange(n), target)
+    # After k rounds step[i] is 2^k edges on from i and lowest[i] the lowest node on those 2^k + 1.
+    for _ in range(max(1, int(n).bit_length())):
+        lowest = np.minimum(lowest, lowest[step])
+        step = step[step]
+    # step[i] now lies on i's cycle (n edges on), and lowest there covers the whole cycle: one number per set.
+    cycle = lowest[step]
+    result = np.full(n, n)
+    np.minimum.at(result, cycle, np.arange(n))
+    return result[cycle]
 
 
 def segment_objects(points: np.ndarray, pixels: np.ndarray, image_size: tuple[int, int], table: TablePlane,
@@ -351,30 +364,105 @@ def _segment(points, pixels, image_size, table: TablePlane, viewpoint, pixel_ang
     on_plane = np.abs(height) <= threshold
     labels[on_plane] = TABLE
     above = (height > threshold) & (height <= config.max_height)
-    # Only what stands over the table's visible extent (not a wall, a stand or a shelf beyond its edge).
+    row, col = pixels[:, 0], pixels[:, 1]  # a column at a time: NumPy is slow over narrow [N, 2] arrays
+    # Only what stands over the table's visible extent (not a wall, a stand or a shelf beyond its edge), in
+    # blocks dense enough to be an object's (`_in_object_blocks`). The block test first as well: fewer
+    # points to drop onto the table, and the same result (a pixel it drops from all the points above the
+    # table it would drop from any part of them).
+    # (As indices: each step gathers a few of the frame's points, not a mask over all of them.)
+    above = np.flatnonzero(above)
+    above = above[_in_object_blocks(row[above], col[above], image_size, config.min_points)]
     table_rows = np.flatnonzero(on_plane)
     table_rows = table_rows[:: max(1, len(table_rows) // 50000)]  # what table_extent keeps, gathered alone
-    above[above] = over_table(points[above], table_extent(points[table_rows], table.normal), table.normal)
-    if not above.any():
+    above = above[over_table(points[above], table_extent(points[table_rows], table.normal), table.normal)]
+    above = above[_in_object_blocks(row[above], col[above], image_size, config.min_points)]
+    if not len(above):
         return labels, labels.copy() if joined else None
-    row, col = pixels[:, 0], pixels[:, 1]  # a column at a time: NumPy is slow over narrow [N, 2] arrays
-    above[above] = _in_object_blocks(row[above], col[above], image_size, config.min_points)
-    if not above.any():
-        return labels, labels.copy() if joined else None
-    # Only the box of image rows and columns around the points above the table is looked at.
-    margin = config.normal_window + config.normal_span
-    above_row, above_col = row[above], col[above]
-    lo = np.maximum(np.array([above_row.min(), above_col.min()]) - margin, 0)
-    hi = np.minimum(np.array([above_row.max(), above_col.max()]) + margin + 1, image_size)
-    # Points come in row-major pixel order (`back_project`), so the box's rows are one slice of them.
-    rows = slice(*np.searchsorted(row, (lo[0], hi[0])))
-    box = np.flatnonzero((col[rows] >= lo[1]) & (col[rows] < hi[1])) + (rows.start or 0)
-    size = (int(hi[0] - lo[0]), int(hi[1] - lo[1]))
+    # Only boxes of image rows and columns around the points above the table are looked at: one per group
+    # of them far enough apart (the objects, a robot's stand at the image's edge), not one spanning both.
+    component = np.empty(len(above), np.int64)  # per point above the table, numbered across the boxes
+    merged = np.empty(len(above), np.int64) if joined else None
+    below = np.empty(len(above), bool)
+    count = 0
+    for lo, hi in _boxes(row[above], col[above], image_size, config.normal_window + config.normal_span):
+        # Points come in row-major pixel order (`back_project`), so a box's rows are one slice of them.
+        rows = slice(*np.searchsorted(row, (lo[0], hi[0])))
+        box = np.flatnonzero((col[rows] >= lo[1]) & (col[rows] < hi[1])) + rows.start
+        inside = slice(*np.searchsorted(above, (rows.start, rows.stop)))
+        inside = np.flatnonzero((col[above[inside]] >= lo[1]) & (col[above[inside]] < hi[1])) + inside.start
+        member = np.zeros(len(box), bool)
+        member[np.searchsorted(box, above[inside])] = True
+        parts = _box_clusters(points[box], height[box], row[box] - lo[0], col[box] - lo[1], member,
+                              (int(hi[0] - lo[0]), int(hi[1] - lo[1])), noise, threshold, table, viewpoint,
+                              pixel_angle, config, joined)
+        component[inside], below[inside] = parts[0] + count, parts[1]
+        if joined:
+            merged[inside] = parts[2] + count
+        count += parts[3]
+    first = labels.copy()
+    first[above] = _numbered(component, below, config.min_points)
+    if not joined:
+        return first, None
+    second = labels.copy()
+    second[above] = _numbered(merged, below, config.min_points)
+    return first, second
 
+
+def _boxes(row: np.ndarray, col: np.ndarray, image_size: tuple[int, int], margin: int) -> list:
+    """The boxes [(lo (row, column), hi (row, column) exclusive)] that hold the pixels at (row [M], col [M])
+    with `margin` pixels around each (clipped to the image): the bounding boxes of the groups of 8x8-pixel
+    blocks whose margins overlap, boxes that overlap joined into one, in row-major order of their corners."""
+    from scipy.ndimage import label
+
+    blocks = np.zeros((image_size[0] // 8 + 1, image_size[1] // 8 + 1), bool)
+    blocks[row // 8, col // 8] = True
+    # Blocks grown by the margin (in blocks) and 8-connected: groups whose margins touch are one.
+    near, count = label(_grown(blocks, -(-margin // 8)), structure=np.ones((3, 3)))
+    if count == 1:  # the common case: the objects alone
+        lo = np.maximum([row.min() - margin, col.min() - margin], 0)
+        return [(lo, np.minimum([row.max() + margin + 1, col.max() + margin + 1], image_size))]
+    which = near[row // 8, col // 8]
+    order = np.argsort(which, kind="stable")
+    cuts = np.flatnonzero(np.diff(which[order])) + 1
+    boxes = []
+    for part in np.split(order, cuts):
+        lo = np.maximum([row[part].min() - margin, col[part].min() - margin], 0)
+        hi = np.minimum([row[part].max() + margin + 1, col[part].max() + margin + 1], image_size)
+        boxes.append((lo, hi))
+    # Boxes of groups that lie apart may still overlap (an L-shaped group's box over another): join them.
+    joined = True
+    while joined and len(boxes) > 1:
+        joined = False
+        for i in range(len(boxes)):
+            for j in range(i + 1, len(boxes)):
+                (a, b), (c, d) = boxes[i], boxes[j]
+                if (a < d).all() and (c < b).all():
+                    boxes[i] = (np.minimum(a, c), np.maximum(b, d))
+                    del boxes[j]
+                    joined = True
+                    break
+            if joined:
+                break
+    return sorted(boxes, key=lambda box: tuple(box[0]))
+
+
+def _grown(mask: np.ndarray, steps: int) -> np.ndarray:
+    """mask [H, W] grown by `steps` cells in every direction (a square of side 2 steps + 1)."""
+    from scipy.ndimage import maximum_filter
+
+    return maximum_filter(mask, size=2 * steps + 1) if steps > 0 else mask
+
+
+def _box_clusters(points: np.ndarray, height: np.ndarray, row: np.ndarray, col: np.ndarray, above: np.ndarray,
+                  size: tuple[int, int], noise: float, threshold: float, table: TablePlane, viewpoint,
+                  pixel_angle: float, config: SegmentConfig, joined: bool) -> tuple:
+    """One box of `_segment`: its points [n, 3], heights [n] and (row, column) [n] in the box, which of them
+    are above the table [n] -> (their components [m], whether each goes on below the table [m], the joined
+    hypothesis' components [m] or None, the number of component labels used), for the m points above."""
     # Flat indices in the box: cheaper to gather and scatter with than (row, column) pairs.
-    box_index = (row[box] - lo[0]) * size[1] + (col[box] - lo[1])
-    above_index = (above_row - lo[0]) * size[1] + (above_col - lo[1])
-    image, valid = point_image(points[box], box_index, size)
+    box_index = row * size[1] + col
+    above_index = box_index[above]
+    image, valid = point_image(points, box_index, size)
     member = np.zeros(size, bool)
     member.reshape(-1)[above_index] = True
     normals = smooth_normals(image, valid, viewpoint, config.normal_window, config.normal_span)
@@ -385,17 +473,11 @@ def _segment(points, pixels, image_size, table: TablePlane, viewpoint, pixel_ang
     components = image_clusters(image, member, normals, tolerance, config.concave_deg, config.normal_span, creases,
                                 close)
     level = np.zeros(member.shape)
-    level.reshape(-1)[box_index] = height[box]
+    level.reshape(-1)[box_index] = height
     below = _continues_below(valid, member, components, creases, level, normals, close, threshold, table.normal)
-    below = below.reshape(-1)[above_index]
-    first = labels.copy()
-    first[above] = _numbered(components.reshape(-1)[above_index], below, config.min_points)
-    if not joined:
-        return first, None
-    second = labels.copy()
-    merged = merge_fragments(components, creases, config.fragment_points)
-    second[above] = _numbered(merged.reshape(-1)[above_index], below, config.min_points)
-    return first, second
+    used = int(components.max()) + 1
+    merged = merge_fragments(components, creases, config.fragment_points).reshape(-1)[above_index] if joined else None
+    return components.reshape(-1)[above_index], below.reshape(-1)[above_index], merged, used
 
 
 def _in_object_blocks(row: np.ndarray, col: np.ndarray, image_size: tuple[int, int], min_points: int) -> np.ndarray:
