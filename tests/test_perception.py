@@ -133,6 +133,14 @@ def test_the_table_is_found_with_its_normal_towards_the_camera(seed):
     up = fit_table(world, viewpoint=T[:3, 3], seed=seed, max_tilt_deg=10.0, up=(0, 0, 1))
     np.testing.assert_allclose(up.normal, (0, 0, 1), atol=0.01)
     assert fit_table(points, seed=seed).plane == table.plane  # the same seed, the same plane
+    # The heights it leaves are the points' heights over its plane.
+    np.testing.assert_array_equal(table.heights, table.height(points))
+    # Points that are not finite take no part: the rest's plane; they are no inliers.
+    broken = points.copy()
+    broken[::97, 1], broken[1::97, 2] = np.nan, np.inf
+    spoilt = fit_table(broken, seed=seed)
+    assert np.degrees(np.arccos(np.clip(spoilt.normal @ truth[:3], -1, 1))) < 1.0
+    assert not spoilt.inliers[::97].any() and not spoilt.inliers[1::97].any()
     with pytest.raises(ValueError, match="at least 3 finite points"):
         fit_table(points[:2])
 

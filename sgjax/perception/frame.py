@@ -177,7 +177,8 @@ class Frame:
         joined = None
         if ids is None:
             (labels, joined), how = segment_with_joined(points, pixels, size, table, camera_position,
-                                                        1.0 / min(intrinsics.fx, intrinsics.fy), segment), "clusters"
+                                                        1.0 / min(intrinsics.fx, intrinsics.fy), segment,
+                                                        height=table.heights), "clusters"
         else:
             labels, how = _mask_labels(ids, pixels, points, table, segment), "masks"
         return cls(points, labels, pixels, table, camera_position, intrinsics, extrinsics, size, how, joined)
@@ -244,7 +245,7 @@ def _mask_labels(ids: np.ndarray, pixels: np.ndarray, points: np.ndarray, table:
     noise below the table is background there), else TABLE on the table and OTHER off it."""
     if (ids < 0).any():
         raise PerceptionError("masks: instance ids must be >= 0 (0 = background)")
-    height = table.height(points)
+    height = table.height(points) if table.heights is None else table.heights
     threshold = height_threshold(table_noise(height), segment)
     point_ids = ids[pixels[:, 0], pixels[:, 1]]
     labels = np.where(np.abs(height) <= threshold, TABLE, OTHER).astype(np.int32)

@@ -344,20 +344,24 @@ def segment_objects(points: np.ndarray, pixels: np.ndarray, image_size: tuple[in
 
 
 def segment_with_joined(points: np.ndarray, pixels: np.ndarray, image_size: tuple[int, int], table: TablePlane,
-                        viewpoint, pixel_angle: float, config: SegmentConfig = SegmentConfig()
-                        ) -> tuple[np.ndarray, np.ndarray]:
+                        viewpoint, pixel_angle: float, config: SegmentConfig = SegmentConfig(), *,
+                        height: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """`segment_objects`' labels int32 [N] and the joined hypothesis' int32 [N] (module doc: the
     crease-cut fragments joined, `merge_fragments` with config.fragment_points), numbered the same way,
-    from one pass."""
-    return _segment(points, pixels, image_size, table, viewpoint, pixel_angle, config, True)
+    from one pass. height: the points' heights above the table [N] when the caller has them
+    (`table.height(points)`; `fit_table` leaves them in `TablePlane.heights` for the points it fitted)."""
+    return _segment(points, pixels, image_size, table, viewpoint, pixel_angle, config, True, height)
 
 
 def _segment(points, pixels, image_size, table: TablePlane, viewpoint, pixel_angle: float, config: SegmentConfig,
-             joined: bool) -> tuple[np.ndarray, np.ndarray | None]:
+             joined: bool, height: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
     points = np.asarray(points, np.float64)
     if len(pixels) > 1 and np.any(pixels[1:, 0] < pixels[:-1, 0]):
         raise ValueError("segment_objects: the pixels must come in row-major order (as back_project gives them)")
-    height = table.height(points)
+    if height is None:
+        height = table.height(points)
+    elif np.shape(height) != (len(points),):
+        raise ValueError(f"height must be [N] for the {len(points)} points, got shape {np.shape(height)}")
     noise = table_noise(height)
     threshold = height_threshold(noise, config)
     labels = np.full(len(points), OTHER, np.int32)

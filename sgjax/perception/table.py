@@ -11,11 +11,13 @@ import numpy as np
 class TablePlane:
     """plane (a, b, c, d) with (a, b, c) a unit normal towards the camera: free space a x + b y + c z + d > 0
     (`sgjax.planner.PlannerConfig.support_plane`'s convention); inliers bool [N]: the points within the fit's
-    distance of it; rms: their distance's root mean square (metres)."""
+    distance of it; rms: their distance's root mean square (metres); heights: the fitted points' signed
+    distances above the plane [N] (`height` of them, NaN where a point was not finite), or None."""
 
     plane: tuple[float, float, float, float]
     inliers: np.ndarray
     rms: float
+    heights: np.ndarray | None = dataclasses.field(default=None, repr=False, compare=False)
 
     @property
     def normal(self) -> np.ndarray:
@@ -40,9 +42,8 @@ def fit_table(points: np.ndarray, viewpoint=(0.0, 0.0, 0.0), distance: float = 0
     pts = np.asarray(points, np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise ValueError(f"points must be [N, 3], got shape {pts.shape}")
-    finite = np.isfinite(pts)
-    if not finite.all():
-        pts = pts[np.all(finite, axis=1)]
+    if not np.isfinite(pts.sum()):  # a NaN or an inf makes the sum one (as would an overflow: then nothing goes)
+        pts = pts[np.all(np.isfinite(pts), axis=1)]
     if len(pts) < 3:
         raise ValueError(f"a table plane needs at least 3 finite points, got {len(pts)}")
     if not distance > 0 or iterations < 1 or sample < 3:
@@ -97,6 +98,6 @@ def fit_table(points: np.ndarray, viewpoint=(0.0, 0.0, 0.0), distance: float = 0
         normal, offset = -normal, -offset
     full = np.asarray(points, np.float64)
     residual = full @ normal + offset
-    inliers = np.isfinite(residual) & (np.abs(residual) <= distance)
+    inliers = np.abs(residual) <= distance  # (False where the residual is NaN)
     rms = float(np.sqrt(np.mean(residual[inliers] ** 2))) if inliers.any() else float("nan")
-    return TablePlane((*map(float, normal), float(offset)), inliers, rms)
+    return TablePlane((*map(float, normal), float(offset)), inliers, rms, residual)
