@@ -327,12 +327,16 @@ def test_specks_above_the_table_are_no_object_but_an_object_is():
     sparse = np.array([[300, 600], [302, 602], [304, 604], [306, 606], [301, 605]])  # 5 pixels: a block < 50 / 8
     big = np.concatenate([speck + [400, 8 * k] for k in range(8)])  # eight dense blocks in a row: 56 >= 50
     pixels = np.concatenate([obj, group + [0, 400], sparse, big])
-    kept = _in_object_blocks(pixels[:, 0], pixels[:, 1], (480, 640), 50)
+    kept, blocks = _in_object_blocks(pixels[:, 0], pixels[:, 1], (480, 640), 50)
     n = np.cumsum([len(obj), len(group), len(sparse), len(big)])
     assert kept[:n[0]].all() and not kept[n[0]:n[2]].any() and kept[n[2]:].all()
     # The same pixels one by one: the rule does not depend on what else is above the table elsewhere.
     for part in np.split(np.arange(len(pixels)), n[:-1]):
-        assert np.array_equal(_in_object_blocks(pixels[part, 0], pixels[part, 1], (480, 640), 50), kept[part])
+        assert np.array_equal(_in_object_blocks(pixels[part, 0], pixels[part, 1], (480, 640), 50)[0], kept[part])
+    # The blocks it gives are those that hold the pixels it keeps.
+    held = np.zeros_like(blocks)
+    held[pixels[kept, 0] // 8, pixels[kept, 1] // 8] = True
+    np.testing.assert_array_equal(blocks, held)
 
 
 @pytest.mark.parametrize("n", [1, 2, 7, 300])
@@ -363,10 +367,15 @@ def test_far_apart_groups_are_looked_at_in_boxes_of_their_own():
     stand = np.stack(np.mgrid[0:60, 600:640].reshape(2, -1), 1)  # a robot's stand in a corner
     near = np.stack(np.mgrid[262:270, 340:350].reshape(2, -1), 1)  # a piece within the objects' margin
     pixels = np.concatenate([objects, stand, near])
-    boxes = _boxes(pixels[:, 0], pixels[:, 1], (480, 640), 10)
+    def blocks(pixels):
+        held = np.zeros((61, 81), bool)
+        held[pixels[:, 0] // 8, pixels[:, 1] // 8] = True
+        return held
+
+    boxes = _boxes(pixels[:, 0], pixels[:, 1], blocks(pixels), (480, 640), 10)
     assert [(lo.tolist(), hi.tolist()) for lo, hi in boxes] == [([0, 590], [70, 640]), ([190, 240], [280, 360])]
     inside = [((pixels >= lo) & (pixels < hi)).all(1) for lo, hi in boxes]
     assert (np.sum(inside, 0) == 1).all()
     # One group alone: its bounding box and the margin, clipped to the image.
-    [(lo, hi)] = _boxes(stand[:, 0], stand[:, 1], (480, 640), 10)
+    [(lo, hi)] = _boxes(stand[:, 0], stand[:, 1], blocks(stand), (480, 640), 10)
     assert lo.tolist() == [0, 590] and hi.tolist() == [70, 640]

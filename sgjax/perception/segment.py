@@ -370,16 +370,14 @@ def _segment(points, pixels, image_size, table: TablePlane, viewpoint, pixel_ang
     above = (height > threshold) & (height <= config.max_height)
     row, col = pixels[:, 0], pixels[:, 1]  # a column at a time: NumPy is slow over narrow [N, 2] arrays
     # Only what stands over the table's visible extent (not a wall, a stand or a shelf beyond its edge), in
-    # blocks dense enough to be an object's (`_in_object_blocks`). The block test first as well: fewer
-    # points to drop onto the table, and the same result (a pixel it drops from all the points above the
-    # table it would drop from any part of them).
-    # (As indices: each step gathers a few of the frame's points, not a mask over all of them.)
+    # blocks dense enough to be an object's (`_in_object_blocks`). (As indices: each step gathers a few of
+    # the frame's points, not a mask over all of them.)
     above = np.flatnonzero(above)
-    above = above[_in_object_blocks(row[above], col[above], image_size, config.min_points)]
     table_rows = np.flatnonzero(on_plane)
     table_rows = table_rows[:: max(1, len(table_rows) // 50000)]  # what table_extent keeps, gathered alone
     above = above[over_table(points[above], table_extent(points[table_rows], table.normal), table.normal)]
-    above = above[_in_object_blocks(row[above], col[above], image_size, config.min_points)]
+    kept, blocks = _in_object_blocks(row[above], col[above], image_size, config.min_points)
+    above = above[kept]
     if not len(above):
         return labels, labels.copy() if joined else None
     # Only boxes of image rows and columns around the points above the table are looked at: one per group
@@ -388,7 +386,7 @@ def _segment(points, pixels, image_size, table: TablePlane, viewpoint, pixel_ang
     merged = np.empty(len(above), np.int64) if joined else None
     below = np.empty(len(above), bool)
     count = 0
-    for lo, hi in _boxes(row[above], col[above], image_size, config.normal_window + config.normal_span):
+    for lo, hi in _boxes(row[above], col[above], blocks, image_size, config.normal_window + config.normal_span):
         # Points come in row-major pixel order (`back_project`), so a box's rows are one slice of them.
         rows = slice(*np.searchsorted(row, (lo[0], hi[0])))
         box = np.flatnonzero((col[rows] >= lo[1]) & (col[rows] < hi[1])) + rows.start
@@ -412,20 +410,19 @@ def _segment(points, pixels, image_size, table: TablePlane, viewpoint, pixel_ang
     return first, second
 
 
-def _boxes(row: np.ndarray, col: np.ndarray, image_size: tuple[int, int], margin: int) -> list:
+def _boxes(row: np.ndarray, col: np.ndarray, blocks: np.ndarray, image_size: tuple[int, int], margin: int) -> list:
     """The boxes [(lo (row, column), hi (row, column) exclusive)] that hold the pixels at (row [M], col [M])
-    with `margin` pixels around each (clipped to the image): the bounding boxes of the groups of 8x8-pixel
-    blocks whose margins overlap, boxes that overlap joined into one, in row-major order of their corners."""
+    with `margin` pixels around each (clipped to the image): the bounding boxes of the groups of the 8x8-pixel
+    blocks that hold them (bool [H / 8 + 1, W / 8 + 1], `_in_object_blocks`) whose margins overlap, boxes
+    that overlap joined into one, in row-major order of their corners."""
     from scipy.ndimage import label
 
-    blocks = np.zeros((image_size[0] // 8 + 1, image_size[1] // 8 + 1), bool)
-    blocks[row // 8, col // 8] = True
     # Blocks grown by the margin (in blocks) and 8-connected: groups whose margins touch are one.
     near, count = label(_grown(blocks, -(-margin // 8)), structure=np.ones((3, 3)))
     if count == 1:  # the common case: the objects alone
         lo = np.maximum([row.min() - margin, col.min() - margin], 0)
         return [(lo, np.minimum([row.max() + margin + 1, col.max() + margin + 1], image_size))]
-    which = near[row // 8, col // 8]
+    which = near[row >> 3, col >> 3]
     order = np.argsort(which, kind="stable")
     cuts = np.flatnonzero(np.diff(which[order])) + 1
     boxes = []
@@ -484,24 +481,27 @@ def _box_clusters(points: np.ndarray, height: np.ndarray, row: np.ndarray, col: 
     return components.reshape(-1)[above_index], below.reshape(-1)[above_index], merged, used
 
 
-def _in_object_blocks(row: np.ndarray, col: np.ndarray, image_size: tuple[int, int], min_points: int) -> np.ndarray:
-    """Which of the pixels above the table at (row [M], col [M]) may belong to an object -> bool [M]: those in
-    8x8-pixel blocks holding at least min_points / 8 of them, in a group of such blocks (8-connected) that
-    holds at least min_points. Lone pixels (the noise's tail) are no object, and no cluster of min_points
-    pixels spans two groups, so a smaller group would only give clusters that are dropped; without them the
-    box `_segment` looks at is the objects', not the frame's (a stereo camera's noise on a far table
-    scatters such specks over the whole image)."""
+def _in_object_blocks(row: np.ndarray, col: np.ndarray, image_size: tuple[int, int], min_points: int
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """Which of the pixels above the table at (row [M], col [M]) may belong to an object -> (bool [M], the
+    8x8-pixel blocks that hold them, bool [H / 8 + 1, W / 8 + 1]): those in blocks holding at least
+    min_points / 8 of them, in a group of such blocks (8-connected) that holds at least min_points. Lone
+    pixels (the noise's tail) are no object, and no cluster of min_points pixels spans two groups, so a
+    smaller group would only give clusters that are dropped; without them the boxes `_segment` looks at are
+    the objects', not the frame's (a stereo camera's noise on a far table scatters such specks over the
+    whole image)."""
     from scipy.ndimage import label
 
-    width = image_size[1] // 8 + 1
-    block = (row // 8) * width + col // 8
-    count = np.bincount(block, minlength=(image_size[0] // 8 + 1) * width)
+    shape = (image_size[0] // 8 + 1, image_size[1] // 8 + 1)
+    block = (row >> 3) * shape[1] + (col >> 3)  # (a shift: cheaper than NumPy's division)
+    count = np.bincount(block, minlength=shape[0] * shape[1])
     dense = count >= max(1, min_points // 8)
-    groups, _ = label(dense.reshape(-1, width), structure=np.ones((3, 3)))
+    groups, _ = label(dense.reshape(shape), structure=np.ones((3, 3)))
     groups = groups.reshape(-1)
     total = np.bincount(groups, weights=np.where(dense, count, 0))
     total[0] = 0  # the blocks in no group
-    return total[groups[block]] >= min_points
+    kept = total[groups] >= min_points
+    return kept[block], kept.reshape(shape)
 
 
 def _numbered(components: np.ndarray, below: np.ndarray, min_points: int) -> np.ndarray:
