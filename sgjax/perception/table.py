@@ -12,7 +12,7 @@ class TablePlane:
     """plane (a, b, c, d) with (a, b, c) a unit normal towards the camera: free space a x + b y + c z + d > 0
     (`sgjax.planner.PlannerConfig.support_plane`'s convention); inliers bool [N]: the points within the fit's
     distance of it; rms: their distance's root mean square (metres); heights: the fitted points' signed
-    distances above the plane [N] (`height` of them, NaN where a point was not finite), or None."""
+    distances above the plane [N] (`height` of them; not finite where a point was not), or None."""
 
     plane: tuple[float, float, float, float]
     inliers: np.ndarray
