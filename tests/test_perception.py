@@ -379,3 +379,22 @@ def test_far_apart_groups_are_looked_at_in_boxes_of_their_own():
     # One group alone: its bounding box and the margin, clipped to the image.
     [(lo, hi)] = _boxes(stand[:, 0], stand[:, 1], blocks(stand), (480, 640), 10)
     assert lo.tolist() == [0, 590] and hi.tolist() == [70, 640]
+
+
+def test_segmentation_takes_the_heights_the_table_fit_left():
+    """`segment_with_joined(..., height=)`: the fit's own heights give the labels the plane's heights give;
+    heights of another length are refused, naming the problem."""
+    from sgjax.perception.segment import segment_with_joined
+
+    depth = render(tilted_camera())
+    depth = np.where(np.isfinite(depth) & (depth < 2.0), depth, 0.0)
+    points, pixels = back_project(depth, K)
+    table = fit_table(points)
+    args = (points, pixels, (K.height, K.width), table, np.zeros(3), 1.0 / K.fx)
+    plain = segment_with_joined(*args)
+    assert plain[0].max() >= 1  # the box (at least)
+    given = segment_with_joined(*args, height=table.heights)
+    np.testing.assert_array_equal(given[0], plain[0])
+    np.testing.assert_array_equal(given[1], plain[1])
+    with pytest.raises(ValueError, match="height must be"):
+        segment_with_joined(*args, height=table.heights[:-1])
