@@ -180,7 +180,7 @@ class Frame:
                                                         1.0 / min(intrinsics.fx, intrinsics.fy), segment,
                                                         height=table.heights), "clusters"
         else:
-            labels, how = _mask_labels(ids, pixels, points, table, segment), "masks"
+            labels, how = _mask_labels(ids, pixels, table.heights, segment), "masks"
         return cls(points, labels, pixels, table, camera_position, intrinsics, extrinsics, size, how, joined)
 
 
@@ -239,13 +239,12 @@ def _image(value, size: tuple[int, int], what: str) -> np.ndarray:
     return value.astype(np.int64)
 
 
-def _mask_labels(ids: np.ndarray, pixels: np.ndarray, points: np.ndarray, table: TablePlane,
-                 segment: SegmentConfig) -> np.ndarray:
-    """Labels from instance ids: a masked pixel's id (> 0; a mask that strays more than the table's
-    noise below the table is background there), else TABLE on the table and OTHER off it."""
+def _mask_labels(ids: np.ndarray, pixels: np.ndarray, height: np.ndarray, segment: SegmentConfig) -> np.ndarray:
+    """Labels from instance ids of the points at pixels [N, 2], heights [N] above the table (the fit's
+    `TablePlane.heights`): a masked pixel's id (> 0; a mask that strays more than the table's noise below
+    the table is background there), else TABLE on the table and OTHER off it."""
     if (ids < 0).any():
         raise PerceptionError("masks: instance ids must be >= 0 (0 = background)")
-    height = table.height(points) if table.heights is None else table.heights
     threshold = height_threshold(table_noise(height), segment)
     point_ids = ids[pixels[:, 0], pixels[:, 1]]
     labels = np.where(np.abs(height) <= threshold, TABLE, OTHER).astype(np.int32)

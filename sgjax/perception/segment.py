@@ -22,6 +22,7 @@ creases alone part from others has joined the one it shares the most crease link
 from __future__ import annotations
 
 import dataclasses
+import itertools
 
 import numpy as np
 
@@ -415,43 +416,28 @@ def _boxes(row: np.ndarray, col: np.ndarray, blocks: np.ndarray, image_size: tup
     with `margin` pixels around each (clipped to the image): the bounding boxes of the groups of the 8x8-pixel
     blocks that hold them (bool [H / 8 + 1, W / 8 + 1], `_in_object_blocks`) whose margins overlap, boxes
     that overlap joined into one, in row-major order of their corners."""
-    from scipy.ndimage import label
+    from scipy.ndimage import label, maximum_filter
 
     # Blocks grown by the margin (in blocks) and 8-connected: groups whose margins touch are one.
-    near, count = label(_grown(blocks, -(-margin // 8)), structure=np.ones((3, 3)))
+    near, count = label(maximum_filter(blocks, size=2 * -(-margin // 8) + 1), structure=np.ones((3, 3)))
     if count == 1:  # the common case: the objects alone
         lo = np.maximum([row.min() - margin, col.min() - margin], 0)
         return [(lo, np.minimum([row.max() + margin + 1, col.max() + margin + 1], image_size))]
     which = near[row >> 3, col >> 3]
     order = np.argsort(which, kind="stable")
-    cuts = np.flatnonzero(np.diff(which[order])) + 1
     boxes = []
-    for part in np.split(order, cuts):
+    for part in np.split(order, np.flatnonzero(np.diff(which[order])) + 1):
         lo = np.maximum([row[part].min() - margin, col[part].min() - margin], 0)
         hi = np.minimum([row[part].max() + margin + 1, col[part].max() + margin + 1], image_size)
         boxes.append((lo, hi))
-    # Boxes of groups that lie apart may still overlap (an L-shaped group's box over another): join them.
-    joined = True
-    while joined and len(boxes) > 1:
-        joined = False
-        for i in range(len(boxes)):
-            for j in range(i + 1, len(boxes)):
-                (a, b), (c, d) = boxes[i], boxes[j]
-                if (a < d).all() and (c < b).all():
-                    boxes[i] = (np.minimum(a, c), np.maximum(b, d))
-                    del boxes[j]
-                    joined = True
-                    break
-            if joined:
-                break
+    # Boxes of groups that lie apart may still overlap (an L-shaped group's box over another): join such a
+    # pair, until none overlaps.
+    while overlapping := next(((i, j) for i, j in itertools.combinations(range(len(boxes)), 2)
+                               if (boxes[i][0] < boxes[j][1]).all() and (boxes[j][0] < boxes[i][1]).all()), None):
+        i, j = overlapping
+        boxes[i] = (np.minimum(boxes[i][0], boxes[j][0]), np.maximum(boxes[i][1], boxes[j][1]))
+        del boxes[j]
     return sorted(boxes, key=lambda box: tuple(box[0]))
-
-
-def _grown(mask: np.ndarray, steps: int) -> np.ndarray:
-    """mask [H, W] grown by `steps` cells in every direction (a square of side 2 steps + 1)."""
-    from scipy.ndimage import maximum_filter
-
-    return maximum_filter(mask, size=2 * steps + 1) if steps > 0 else mask
 
 
 def _box_clusters(points: np.ndarray, height: np.ndarray, row: np.ndarray, col: np.ndarray, above: np.ndarray,
