@@ -632,6 +632,7 @@ def _plan_cloud(args: argparse.Namespace) -> int:
                 f"{args.mask}: the mask must be bool [N] (target) or int [N] (object labels) with N = {len(cloud)} "
                 f"(the cloud's points), got {mask.dtype} {mask.shape}"
             )
+        _prefetch_programs(args, spec, f"cloud {mask.dtype == bool}")
         db = _database(spec, args.small_db, args.db, check=args.gripper is not None)
         planner = _planner(args, spec, db, per_object=mask.dtype == bool)
         viewpoint = (0.0, 0.0, 0.0) if args.viewpoint is None else tuple(args.viewpoint)
@@ -722,6 +723,15 @@ def _planner(args: argparse.Namespace, spec, db, per_object: bool):
         return Planner(model=args.model, db=db, config=config)
 
 
+def _prefetch_programs(args: argparse.Namespace, spec, form: str) -> None:
+    """Start loading the programs that the last `sgjax plan` of this form and these settings called, on a
+    second thread, while this one reads the input and restores the network (`exported.prefetch`: ~1 s
+    less on 2 cores, docs/real-camera.md)."""
+    from sgjax.utils import exported
+
+    exported.prefetch(f"plan {form} {spec!r} {args.model} {args.preset} {args.small_db} {args.db}")
+
+
 def _frame_json(frame, result, timing: dict, checkpoint: str) -> dict:
     """The depth form's JSON document (README, docs/real-camera.md); checkpoint: `Planner.checkpoint`."""
     import numpy as np
@@ -738,9 +748,6 @@ def _plan_frame(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from sgjax import perception
-    from sgjax.perception.camera import existing_file
-
     start = time.perf_counter()
     try:
         spec = _gripper(args)
@@ -752,6 +759,11 @@ def _plan_frame(args: argparse.Namespace) -> int:
         return _fail(f"--depth-scale must be a number > 0 (depth units per metre; 1000: millimetres), got {scale:g}")
     if top < 1:
         return _fail(f"--top must be >= 1, got {top}")
+    _prefetch_programs(args, spec, f"--depth {args.all_objects}")  # before the front end's imports (SciPy)
+
+    from sgjax import perception
+    from sgjax.perception.camera import existing_file
+
     try:
         existing_file(args.depth, "depth image")  # the depth's error first, as its option comes first
         intrinsics = _read_file(args.intrinsics, "intrinsics", perception.read_intrinsics)
@@ -1324,5 +1336,24 @@ def main(argv: Sequence[str] | None = None) -> int:
     from sgjax.utils.cache import enable_compilation_cache
 
     enable_compilation_cache()  # every command is a new process: reuse what earlier ones compiled
-    return args.func(args)
+    code = args.func(args)
+    if argv is None and args.func is _cmd_plan:
+        _end_process(code)
+    return code
+
+
+def _end_process(code: int) -> None:
+    """End a `sgjax plan` process (the command line's, not a caller's `main([...])`) at once: its output
+    flushed and the programs it was still loading in the background done, without Python's teardown of
+    XLA's executables and modules (~0.5 s of a ~5 s command on 2 cores, docs/real-camera.md). plan
+    writes its files (cache entries, --png) before it returns, each atomically."""
+    import logging
+
+    from sgjax.utils import exported
+
+    exported.settle()
+    logging.shutdown()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
 

@@ -6,6 +6,8 @@ beneath (`draw_grasps`' up, `draw.project`, `table_plane`'s up)."""
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -115,6 +117,18 @@ def test_plan_depth_in_camera_and_world_frames(frame_dir, capsys):
     out = capsys.readouterr().out
     assert "camera frame" in out and f"object {c['object']}:" in out and "center" in out and "timing" in out
     assert "E-RNet checkpoint: sgjax/models/ernet_default" in out
+
+    # As its own process, as the `sgjax` command runs: the programs the plans above called load on a
+    # second thread (`exported.prefetch`) and the process ends without Python's teardown (`_end_process`):
+    # the same document, all of it; a bad input still ends with status 2 and one line.
+    command = [sys.executable, "-m", "sgjax_cli", "plan", *base, "--small-db", "--json"]
+    done = subprocess.run(command, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+    doc = json.loads(done.stdout)
+    assert (doc["objects"], doc["grasps"], doc["table"]) == (camera["objects"], camera["grasps"], camera["table"])
+    done = subprocess.run(command[:5] + [str(frame_dir / "missing.png"), *command[6:]], capture_output=True, text=True)
+    assert done.returncode == 2 and done.stdout == "" and done.stderr.startswith("sgjax: error: ")
+    assert len(done.stderr.strip().splitlines()) == 1 and "missing.png" in done.stderr
 
 
 def test_plan_frame_tries_the_joined_hypothesis_when_the_first_finds_no_grasp(frame_dir):

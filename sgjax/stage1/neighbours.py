@@ -30,6 +30,7 @@ from sgjax.geometry.gripper import GripperSpec
 from sgjax.geometry.superquadric import Superquadric, log_implicit_local
 from sgjax.stage1.filters import fit_collisions
 from sgjax.stage1.pipeline import ROW_FIELDS, Candidates
+from sgjax.utils import exported
 
 
 @dataclasses.dataclass(frozen=True)
@@ -116,10 +117,15 @@ def obstacle_fits(candidates: list[Candidates], clouds: list, config: NeighbourF
     return fits, mask, fit_pairs(fits, mask, clouds, config, seed)
 
 
-@functools.partial(jax.jit, static_argnames=("spec", "config", "sweep"))
 def _hits(poses, widths, owner, fits, mask, pairs, spec: GripperSpec, config: NeighbourFitConfig, sweep: float):
     return fit_collisions(poses, widths, owner, fits, mask, spec, config.margin, sweep, config.step, config.nearest,
                           pair_mask=pairs)
+
+
+def _hits_call(args: tuple, spec: GripperSpec, config: NeighbourFitConfig, sweep: float):
+    """(function, arguments, static key) of one `_hits` call, for `exported.call` / `exported.ready`: kept
+    on disk, a new process loads it instead of tracing it (~0.2 s a size)."""
+    return functools.partial(_hits, spec=spec, config=config, sweep=sweep), args, (spec, config, sweep)
 
 
 def fit_hits(poses, widths, owner, fits: Superquadric, mask, spec: GripperSpec, config: NeighbourFitConfig,
@@ -137,17 +143,21 @@ def fit_hits(poses, widths, owner, fits: Superquadric, mask, spec: GripperSpec, 
         w = np.zeros(slots, np.float32)
         own = np.full(slots, -1, np.int32)
         p[:n], w[:n], own[:n] = poses[begin:begin + n], widths[begin:begin + n], owner[begin:begin + n]
-        out[begin:begin + n] = np.asarray(_hits(p, w, own, fits, mask, pairs, spec, config, float(sweep)))[:n]
+        out[begin:begin + n] = np.asarray(exported.call("fit_hits", *_hits_call((p, w, own, fits, mask, pairs), spec,
+                                                                                  config, float(sweep))))[:n]
     return out
 
 
 def warm(candidates: list[Candidates], spec: GripperSpec, config: NeighbourFitConfig, sweep: float,
          sizes: tuple[int, ...]) -> None:
-    """Compile the test for every size in `sizes` with these candidates' fits' shape, so no later plan stalls."""
+    """Compile the test for every size in `sizes` with these candidates' fits' shape, so no later plan stalls;
+    a size already on disk (`exported.ready`) is only loaded when first used."""
     fits, mask, pairs = obstacle_fits(candidates, [np.zeros((1, 3))] * len(candidates), config)
     for size in sizes:
-        fit_hits(np.tile(np.eye(4, dtype=np.float32), (size, 1, 1)), np.zeros(size, np.float32),
-                 np.full(size, -1, np.int32), fits, mask, spec, config, sweep, (size,), pairs)
+        args = (np.tile(np.eye(4, dtype=np.float32), (size, 1, 1)), np.zeros(size, np.float32),
+                np.full(size, -1, np.int32), fits, mask, pairs)
+        if not exported.ready("fit_hits", *_hits_call(args, spec, config, float(sweep))[1:]):
+            fit_hits(*args[:5], spec, config, sweep, (size,), pairs)
 
 
 def without_fit_collisions(candidates: list[Candidates], obstacles: tuple, spec: GripperSpec, config: NeighbourFitConfig,

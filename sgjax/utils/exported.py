@@ -20,9 +20,11 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import json
 import os
 import pickle
 from collections.abc import Callable, Hashable
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -36,6 +38,9 @@ SUFFIX = ".jaxexport"
 _loaded: dict[str, tuple[Callable, Any]] = {}  # key -> (jitted call of the exported program, output treedef)
 _jitted: dict[tuple, Callable] = {}  # (name, static) -> jax.jit of the function, when export is off
 stats = {"exported": 0, "loaded": 0, "jitted": 0}  # programs made or loaded in this process
+_pending: dict[str, Future] = {}  # key -> prefetch's future (its (run, out_tree), or None when it failed)
+_used: dict[str, None] = {}  # keys called since the last `prefetch`, in the order of their first call
+_manifest: dict = {}  # "path" and "keys" of the prefetched group's list (see `prefetch`)
 
 
 def enabled() -> bool:
@@ -84,7 +89,11 @@ def call(name: str, fn: Callable, args: tuple, static: Hashable = ()) -> Any:
     leaves, treedef = jax.tree.flatten(args)
     key = program_key(name, static, leaves, treedef)
     if key not in _loaded:
-        _loaded[key] = _load_or_export(key, fn, leaves, treedef)
+        future = _pending.pop(key, None)
+        loaded = None if future is None else future.result()
+        _loaded[key] = loaded if loaded is not None else _load_or_export(key, fn, leaves, treedef)
+    if key not in _used:
+        _remember(key)
     run, out_tree = _loaded[key]
     return jax.tree.unflatten(out_tree, run(*leaves))
 
@@ -99,33 +108,93 @@ def ready(name: str, args: tuple, static: Hashable = ()) -> bool:
     return key in _loaded or (cache_dir("exported") / (key + SUFFIX)).exists()
 
 
-def _load_or_export(key: str, fn: Callable, leaves: list, treedef) -> tuple[Callable, Any]:
-    enable_compilation_cache()  # the exported program's compilation is then a cache hit too
+def prefetch(group: str) -> None:
+    """Start loading, on a background thread, the programs that the last process of `group` called (a
+    list kept beside them, `<group>.keys`), so that their deserialisation and compilation (a persistent
+    cache hit, ~1 s for Stage 1 and 2 on 2 cores) overlaps what the process does before it first calls
+    them (reading a frame, restoring a checkpoint). `call` then waits for a program still loading. The
+    list is written again when this process calls programs in another order or others (a new code or
+    configuration); group names what decides the programs (a command and its settings). Off with
+    SGJAX_COMPILE_CACHE=0."""
+    if not enabled():
+        return
+    # Per code version: another sgjax (or jax) calls other programs, and two checkouts sharing a cache
+    # would otherwise rewrite each other's list.
+    digest = hashlib.sha256("\0".join((group, jax.__version__, source_digest())).encode()).hexdigest()
+    path = cache_dir("exported") / (digest[:24] + ".keys")
+    try:
+        keys = json.loads(path.read_text())["keys"]
+    except (OSError, ValueError, KeyError, TypeError):
+        keys = []
+    _manifest.update(path=path, keys=keys)
+    _used.clear()  # a process may prefetch for one group after another (a notebook, the tests)
+    todo = [k for k in keys if k not in _loaded and k not in _pending and (path.parent / (k + SUFFIX)).exists()]
+    if todo:
+        pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="sgjax-prefetch")
+        for key in todo:
+            _pending[key] = pool.submit(_load_exported, key)
+        pool.shutdown(wait=False)
+
+
+def settle() -> None:
+    """Wait for the programs `prefetch` is still loading (a process that ends without calling them)."""
+    for future in list(_pending.values()):
+        future.result()
+
+
+def _load_exported(key: str) -> tuple[Callable, Any] | None:
+    """An exported program (`call`'s (run, output treedef)), compiled for the inputs it was exported with:
+    a hit in the persistent compilation cache. None when there is no such file or it cannot be read."""
     path = cache_dir("exported") / (key + SUFFIX)
-    exported = skeleton = None
-    if path.exists():
-        try:
-            blob = pickle.loads(path.read_bytes())
-            exported = jax.export.deserialize(blob["program"])
-            skeleton = blob["skeleton"]
-            stats["loaded"] += 1
-        except Exception:  # an unreadable or foreign file: export again (and replace it)
-            exported = None
-    if exported is None:
-        box = {}
+    if not path.exists():
+        return None
+    try:
+        enable_compilation_cache()
+        blob = pickle.loads(path.read_bytes())
+        exported = jax.export.deserialize(blob["program"])
+        run = jax.jit(exported.call)
+        # The call's compilation depends on its inputs' weak types and on which are committed to a device
+        # (a restored checkpoint's arrays are), which the program does not keep: they are kept beside it.
+        device = jax.devices()[0]
+        specs = [jax.ShapeDtypeStruct(a.shape, a.dtype, weak_type=weak,
+                                      sharding=jax.sharding.SingleDeviceSharding(device) if committed else None)
+                 for a, weak, committed in zip(exported.in_avals, blob["weak"], blob["committed"])]
+        run.lower(*specs).compile()
+        stats["loaded"] += 1
+        return run, jax.tree.structure(blob["skeleton"])
+    except Exception:  # a foreign, damaged or older file: the caller exports the program again
+        return None
 
-        def flat(*xs):
-            out = fn(*jax.tree.unflatten(treedef, list(xs)))
-            box["tree"] = jax.tree.structure(out)  # recorded while jax.export traces it (once)
-            return jax.tree.leaves(out)
 
-        specs = [jax.ShapeDtypeStruct(np.shape(x), jax.numpy.result_type(x), weak_type=_weak(x)) for x in leaves]
-        exported = jax.export.export(jax.jit(flat))(*specs)
-        skeleton = jax.tree.unflatten(box["tree"], [0] * box["tree"].num_leaves)  # picklable: leaves are 0
-        atomic_write_bytes(path, pickle.dumps({"program": exported.serialize(), "skeleton": skeleton}))
-        stats["exported"] += 1
-    out_tree = jax.tree.structure(skeleton)
-    return jax.jit(exported.call), out_tree
+def _remember(key: str) -> None:
+    """Note that the prefetched group called `key`; rewrite its list when it no longer starts with the
+    group's calls."""
+    _used[key] = None
+    used = list(_used)
+    if "path" in _manifest and _manifest["keys"][:len(used)] != used:
+        _manifest["keys"] = used
+        atomic_write_bytes(_manifest["path"], json.dumps({"keys": used}).encode())
+
+
+def _load_or_export(key: str, fn: Callable, leaves: list, treedef) -> tuple[Callable, Any]:
+    loaded = _load_exported(key)
+    if loaded is not None:
+        return loaded
+    box = {}  # none on disk, or an unreadable or foreign file: export (and replace it)
+
+    def flat(*xs):
+        out = fn(*jax.tree.unflatten(treedef, list(xs)))
+        box["tree"] = jax.tree.structure(out)  # recorded while jax.export traces it (once)
+        return jax.tree.leaves(out)
+
+    specs = [jax.ShapeDtypeStruct(np.shape(x), jax.numpy.result_type(x), weak_type=_weak(x)) for x in leaves]
+    exported = jax.export.export(jax.jit(flat))(*specs)
+    skeleton = jax.tree.unflatten(box["tree"], [0] * box["tree"].num_leaves)  # picklable: leaves are 0
+    atomic_write_bytes(cache_dir("exported") / (key + SUFFIX),
+                       pickle.dumps({"program": exported.serialize(), "skeleton": skeleton, "weak": [_weak(x) for x in leaves],
+                                     "committed": [bool(getattr(x, "committed", False)) for x in leaves]}))
+    stats["exported"] += 1
+    return jax.jit(exported.call), jax.tree.structure(skeleton)
 
 
 def compiled_programs() -> int:
