@@ -1336,7 +1336,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     from sgjax.utils.cache import enable_compilation_cache
 
     enable_compilation_cache()  # every command is a new process: reuse what earlier ones compiled
-    code = args.func(args)
+    from sgjax.utils import exported
+
+    try:
+        code = args.func(args)
+    finally:
+        exported.end_group()  # what a caller of main([...]) calls next is not the command's to prefetch
     if argv is None and args.func is _cmd_plan:
         _end_process(code)
     return code

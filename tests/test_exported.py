@@ -25,6 +25,8 @@ jax.monitoring.register_event_duration_secs_listener(
 scale = float(sys.argv[1])
 if len(sys.argv) > 2:
     exported.prefetch(sys.argv[2])
+if len(sys.argv) > 3:
+    exported.end_group()
 def fn(x, tree):
     keep = x > 0
     return {"result": FilterResult(keep, ~keep, keep, keep, keep, keep, keep, x.astype(jnp.int32)),
@@ -36,9 +38,9 @@ print(json.dumps({"keep": np.asarray(out["result"].keep).tolist(), "sum": float(
 """
 
 
-def _run(env: dict, scale: float = 2.0, group: str | None = None) -> dict:
-    done = subprocess.run([sys.executable, "-c", CHILD, str(scale), *([group] if group else [])], env=env,
-                          capture_output=True, text=True)
+def _run(env: dict, scale: float = 2.0, group: str | None = None, end: bool = False) -> dict:
+    done = subprocess.run([sys.executable, "-c", CHILD, str(scale), *([group] if group else []), *(["end"] if end else [])],
+                          env=env, capture_output=True, text=True)
     assert done.returncode == 0, done.stderr[-2000:]
     return json.loads(done.stdout.strip().splitlines()[-1])
 
@@ -84,6 +86,9 @@ def test_prefetch_loads_the_last_run_s_programs_on_another_thread(tmp_path):
     assert len(second["calls_compiled"]) == 1 and second["calls_compiled"][0].startswith("sgjax-prefetch")
     assert (second["keep"], second["sum"]) == (first["keep"], first["sum"])
     listed = json.loads(lists[0].read_text())["keys"]
+    # Calls after the group ended (`end_group`: `sgjax_cli.main` ends each command's) are not listed.
+    later = _run(env, scale=4.0, group="toy command", end=True)
+    assert later["exported"] == 1 and json.loads(lists[0].read_text())["keys"] == listed
     # A run that calls another program (another setting) lists that one instead.
     other = _run(env, scale=3.0, group="toy command")
     assert other["exported"] == 1 and other["sum"] == 3.0 * 10 + 2

@@ -136,6 +136,13 @@ def prefetch(group: str) -> None:
         pool.shutdown(wait=False)
 
 
+def end_group() -> None:
+    """Stop listing calls for the prefetched group: its command is done, and what the process calls next
+    (a caller's own code, the next command of a session) is not the group's to load next time."""
+    _manifest.clear()
+    _used.clear()
+
+
 def settle() -> None:
     """Wait for the programs `prefetch` is still loading (a process that ends without calling them)."""
     for future in list(_pending.values()):
