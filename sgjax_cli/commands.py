@@ -759,7 +759,6 @@ def _plan_frame(args: argparse.Namespace) -> int:
         return _fail(f"--depth-scale must be a number > 0 (depth units per metre; 1000: millimetres), got {scale:g}")
     if top < 1:
         return _fail(f"--top must be >= 1, got {top}")
-    _prefetch_programs(args, spec, f"--depth {args.all_objects}")  # before the front end's imports (SciPy)
 
     from sgjax import perception
     from sgjax.perception.camera import existing_file
@@ -776,6 +775,8 @@ def _plan_frame(args: argparse.Namespace) -> int:
                     raise FileNotFoundError(f"{path}: no such {what} file")
                 images[what] = _read_file(path, what, lambda p, w=what: perception.read_image(p, w))
         masks = images.get("masks")
+        # The files read, before the front end (and its SciPy imports): a bad file's error need not wait for it.
+        _prefetch_programs(args, spec, f"--depth {args.all_objects}")
         # The depth by its path: the front end reads it (and knows a PNG's scale from a float file's metres).
         frame = perception.Frame.from_depth(args.depth, intrinsics, depth_scale=scale, extrinsics=extrinsics,
                                             masks=masks, workspace=images.get("workspace mask"), seed=args.seed)

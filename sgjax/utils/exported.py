@@ -39,7 +39,7 @@ _loaded: dict[str, tuple[Callable, Any]] = {}  # key -> (jitted call of the expo
 _jitted: dict[tuple, Callable] = {}  # (name, static) -> jax.jit of the function, when export is off
 stats = {"exported": 0, "loaded": 0, "jitted": 0}  # programs made or loaded in this process
 _pending: dict[str, Future] = {}  # key -> prefetch's future (its (run, out_tree), or None when it failed)
-_used: dict[str, None] = {}  # keys called since the last `prefetch`, in the order of their first call
+_used: dict[str, None] = {}  # keys the prefetched group called, in the order of their first call
 _manifest: dict = {}  # "path" and "keys" of the prefetched group's list (see `prefetch`)
 
 
@@ -92,7 +92,7 @@ def call(name: str, fn: Callable, args: tuple, static: Hashable = ()) -> Any:
         future = _pending.pop(key, None)
         loaded = None if future is None else future.result()
         _loaded[key] = loaded if loaded is not None else _load_or_export(key, fn, leaves, treedef)
-    if key not in _used:
+    if "path" in _manifest and key not in _used:  # a prefetched group lists its calls
         _remember(key)
     run, out_tree = _loaded[key]
     return jax.tree.unflatten(out_tree, run(*leaves))
@@ -178,7 +178,7 @@ def _remember(key: str) -> None:
     group's calls."""
     _used[key] = None
     used = list(_used)
-    if "path" in _manifest and _manifest["keys"][:len(used)] != used:
+    if _manifest["keys"][:len(used)] != used:
         _manifest["keys"] = used
         atomic_write_bytes(_manifest["path"], json.dumps({"keys": used}).encode())
 
