@@ -55,14 +55,17 @@ class GripperPhysics:
         grip_force once the finger is more than ~1.3 cm from its goal, i.e. on any object. For a gripper
         whose force is above 25 N both are raised (`servo_gains`) so that this stays true.
     friction: (1.0, 0.005, 0.0001) sliding, torsional (m), rolling (m) of the finger pads, rubber-like.
-        MuJoCo takes the larger coefficient of a geom pair, so pads grip at 1.0 whatever the object's.
+        The pads' geom priority makes theirs the coefficient of every pad contact, whatever the object's.
         The sliding coefficient comes from `GripperSpec.finger_friction` (default the same 1.0) unless
         friction[0] was changed from this default, as for grip_force; see `pad_friction`.
     condim: 4 (sliding + torsional friction) on the pads: resists an object spinning about the closing
         axis at a single contact point, as a real soft pad does.
     pad_solref, pad_solimp: (0.005, 1.0) and (0.95, 0.99, 0.001): stiffer contacts than MuJoCo's default
-        (0.02 s, 0.9-0.95) on the finger pads, so a 25 N squeeze sinks ~0.8 mm into the object (a stiff
-        rubber pad) instead of ~3 mm; the time constant stays >= 2 timesteps for stability.
+        (0.02 s, 0.9-0.95) on the finger pads; the time constant stays >= 2 timesteps for stability. The
+        pads' geom priority makes MuJoCo take them as they are for a pad's contacts (without it MuJoCo
+        averages a pair's solref and solimp with the object's defaults), so a 5 cm box squeezed face on
+        sinks ~0.2 mm into each pad at 25 N and ~0.6 mm at 140 N; averaged, 0.8 and 4.1 mm, and
+        at a strong gripper's force objects sank into the pads and slid out under the disturbance.
     weld_solref: (0.01, 1.0) time constant and damping ratio of the gripper-to-target weld: stiff
         tracking (>= 2 timesteps at 2 ms, as MuJoCo recommends) yet finite forces on impact.
     armature: 0.001 kg on the finger joints, for a well-conditioned servo at a 2 ms step.
@@ -188,6 +191,7 @@ def add_gripper(
             condim=physics.condim,
             solref=physics.pad_solref,
             solimp=[*physics.pad_solimp, 0.5, 2.0],  # (dmin, dmax, width) + MuJoCo's default midpoint, power
+            priority=1,  # a pad's contacts take its solref/solimp (and friction, condim), not an average
             group=GRIPPER_GROUP,
             rgba=[0.2, 0.2, 0.25, 1.0],
         )

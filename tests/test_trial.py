@@ -13,6 +13,7 @@ from envs import rollout as trial_contract
 from envs import scene as scene_lib
 from envs.objects import tiny_object_set
 from envs.trial import Outcome, Phase
+from sgjax.geometry.gripper import GripperSpec
 
 IDENTITY = [1.0, 0.0, 0.0, 0.0]
 # Approach straight down, closing along world x (y = z cross x = -y_world).
@@ -178,6 +179,20 @@ def test_weak_grip_holds_the_lift_but_slides_under_the_disturbance(assets):
     assert calm.outcome.tolist() == [Outcome.SUCCESS]
 
 
+@pytest.mark.parametrize("force", [25.0, 140.0])
+def test_the_pads_give_little_however_hard_the_grip(assets, force):
+    """A 5 cm cube squeezed face on sinks into each pad by about what its contact parameters allow
+    (`GripperPhysics.pad_solref`, `pad_solimp`: ~0.2 mm at 25 N, ~0.6 mm at a Franka hand's 140 N peak).
+    Without the pads' geom priority MuJoCo averaged them with the object's softer defaults: 0.8 and 4.1 mm,
+    and objects squeezed by a strong gripper slid out of it under the disturbance."""
+    spec = dataclasses.replace(GripperSpec(), closing_force=force)
+    scene = scene_lib.arrange_scene([assets["box_a"]], [[0, 0, 0.026, *IDENTITY]], gripper=spec)
+    result = trial.run_trials(scene, 0, ACROSS_X[None], [0.065])
+    assert result.outcome.tolist() == [Outcome.SUCCESS]
+    sunk = 0.5 * (0.05 - result.opening[0, Phase.CLOSE :])  # per pad, each phase from the close on
+    assert (sunk > 0.0).all() and (sunk < (0.0004 if force <= 25 else 0.001)).all(), sunk
+
+
 def test_violent_simulation_is_invalid_never_success(pair):
     result = trial.run_trials(pair, 0, ACROSS_X[None], [0.065], config=trial.TrialConfig(disturbance_force=1e4))
     assert result.outcome.tolist() == [Outcome.INVALID]
@@ -279,6 +294,8 @@ def test_cpu_and_mjx_backends_agree(assets):
     np.testing.assert_array_equal(mjx.outcome, cpu.outcome)
     np.testing.assert_array_equal(mjx.held, cpu.held)
     np.testing.assert_allclose(mjx.object_pose[0, :, :3], cpu.object_pose[0, :, :3], atol=0.01)
+    # The pads' contact parameters hold in MJX too (its contacts honour the pads' geom priority).
+    np.testing.assert_allclose(mjx.opening[0, Phase.CLOSE :], cpu.opening[0, Phase.CLOSE :], atol=0.0003)
 
 
 def test_mjx_on_cpu_factors_without_lapack():
