@@ -229,7 +229,9 @@ def _fit_primitives(shapes: list[Primitive], cfg: DBConfig, progress: bool):
     from sgjax.stage1.ems import fit_superquadrics
 
     clouds = np.stack([surface_points(p, cfg.fit_points, seed=cfg.seed + 100_000 + i) for i, p in enumerate(shapes)])
-    chunk = min(256, len(shapes))  # one compiled batch size; the last chunk is padded with copies
+    # Two compiled batch sizes in all, the last chunk padded with copies: how many primitives keep enough
+    # templates depends on the gripper, and a batch of each count would compile EMS anew (~16 s a size).
+    chunk = 256 if len(shapes) > 64 else 64
     results = []
     for start in tqdm(range(0, len(shapes), chunk), desc="superquadrics", unit="batch", disable=not progress):
         part = clouds[start : start + chunk]
