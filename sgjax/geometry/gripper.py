@@ -58,7 +58,7 @@ class GripperSpec:
         the simulated gripper's force limit per finger servo (default 25 N, the value the simulation
         has always used: `envs.gripper_model.GripperPhysics`).
     finger_friction: sliding friction coefficient of the finger pads in the simulation (default 1.0,
-        rubber-like; MuJoCo takes the larger of a pair's coefficients).
+        rubber-like; a pad's contacts take it whatever the object's).
 
     closing_force and finger_friction are physical values of the simulated gripper only: nothing in
     Stage 1, Stage 2 or the crops depends on them. They are init-only (`dataclasses.InitVar`) and kept
