@@ -63,9 +63,8 @@ class GripperPhysics:
     pad_solref, pad_solimp: (0.005, 1.0) and (0.95, 0.99, 0.001): stiffer contacts than MuJoCo's default
         (0.02 s, 0.9-0.95) on the finger pads; the time constant stays >= 2 timesteps for stability. The
         pads' geom priority makes MuJoCo take them as they are for a pad's contacts (without it MuJoCo
-        averages a pair's solref and solimp with the object's defaults), so a 5 cm box squeezed face on
-        sinks ~0.2 mm into each pad at 25 N and ~0.6 mm at 140 N; averaged, 0.8 and 4.1 mm, and
-        at a strong gripper's force objects sank into the pads and slid out under the disturbance.
+        averages a pair's solref and solimp with the object's softer defaults), so a 5 cm box squeezed
+        face on sinks ~0.2 mm into each pad at 25 N and ~0.6 mm at 140 N, and a strong grip holds.
     weld_solref: (0.01, 1.0) time constant and damping ratio of the gripper-to-target weld: stiff
         tracking (>= 2 timesteps at 2 ms, as MuJoCo recommends) yet finite forces on impact.
     armature: 0.001 kg on the finger joints, for a well-conditioned servo at a 2 ms step.

@@ -179,8 +179,8 @@ def test_weak_grip_holds_the_lift_but_slides_under_the_disturbance(assets):
     assert calm.outcome.tolist() == [Outcome.SUCCESS]
 
 
-@pytest.mark.parametrize("force", [25.0, 140.0])
-def test_the_pads_give_little_however_hard_the_grip(assets, force):
+@pytest.mark.parametrize(("force", "most"), [(25.0, 0.0004), (140.0, 0.001)])
+def test_the_pads_give_little_however_hard_the_grip(assets, force, most):
     """A 5 cm cube squeezed face on sinks into each pad by about what its contact parameters allow
     (`GripperPhysics.pad_solref`, `pad_solimp`: ~0.2 mm at 25 N, ~0.6 mm at a Franka hand's 140 N peak).
     Without the pads' geom priority MuJoCo averaged them with the object's softer defaults: 0.8 and 4.1 mm,
@@ -190,7 +190,7 @@ def test_the_pads_give_little_however_hard_the_grip(assets, force):
     result = trial.run_trials(scene, 0, ACROSS_X[None], [0.065])
     assert result.outcome.tolist() == [Outcome.SUCCESS]
     sunk = 0.5 * (0.05 - result.opening[0, Phase.CLOSE :])  # per pad, each phase from the close on
-    assert (sunk > 0.0).all() and (sunk < (0.0004 if force <= 25 else 0.001)).all(), sunk
+    assert (sunk > 0.0).all() and (sunk < most).all(), sunk
 
 
 def test_violent_simulation_is_invalid_never_success(pair):
