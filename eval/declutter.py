@@ -33,9 +33,10 @@ Choices, documented:
     instance ids of the exact render, as a perfect segmenter would give) or from clustering
     ("clusters"). The method gets the table's and the objects' points (labels -1 and 1..K); what the
     front end put beyond the table is dropped. Which object a grasp is on is still decided on the exact
-    render's truth. With clusters, a method that finds no grasp plans once more on the frame's joined
-    hypothesis (`Frame.joined`: crease-cut fragments joined to their neighbour), as `sgjax plan --depth`
-    does; the attempt's "seen" says "labels": "joined" when that plan's grasp was executed.
+    render's truth. With clusters, a method that finds no grasp plans again on the frame's other
+    hypotheses in turn (`Frame.hypotheses`: the joined one, crease-cut fragments joined to their
+    neighbour, then the finer one, a pile cut into its objects), as `sgjax plan --depth` does; the
+    attempt's "seen" says "labels": "joined" or "finer" when such a plan's grasp was executed.
 """
 
 from __future__ import annotations
@@ -55,7 +56,7 @@ from envs import trial as trial_lib
 from eval.numerics import numerics_label
 from eval.protocol import Decision, Method
 from sgjax.geometry.gripper import GripperSpec
-from sgjax.perception import PerceptionError
+from sgjax.perception import Frame, PerceptionError
 
 LOG_VERSION = 1
 NO_OBJECT = "no_object"
@@ -286,23 +287,24 @@ def make_benchmark_scene(objects: Sequence, n_objects: int, seed: int, index: in
 class View(NamedTuple):
     """What a method sees of a scene (`observe`): obs (the exact observation, which decides the
     outcome), points [P, 3], labels [P], info (the front end's {"objects_found", "table" plane}, else
-    {}), joined (points [Q, 3], labels [Q], truth [Q]) of the frame's joined hypothesis, or None;
-    through a sensor, truth [P]: the exact render's object index at each point's pixel (-1: none), and
-    visible int [n]: each object's points in the whole frame (`cluster_grade`); else None."""
+    {}); through a sensor, truth [P]: the exact render's object index at each point's pixel (-1: none),
+    visible int [n]: each object's points in the whole frame (`cluster_grade`), frame: the front end's
+    `Frame` and frame_truth [N] the truth at each of its points (`hypotheses`); else None."""
 
     obs: camera_lib.Observation
     points: np.ndarray
     labels: np.ndarray
     info: dict
-    joined: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
     truth: np.ndarray | None = None
     visible: np.ndarray | None = None
+    frame: Frame | None = None
+    frame_truth: np.ndarray | None = None
 
 
 def observe(scene, config: DeclutterConfig, seed: int) -> View:
     """What the method sees of `scene`: the exact render's own cloud and labels, or through a sensor the
-    front end's (module doc), with the joined hypothesis when clustering made one that differs. A frame
-    the front end cannot use (PerceptionError) leaves the method no points."""
+    front end's (module doc). A frame the front end cannot use (PerceptionError) leaves the method no
+    points."""
     if not config.through_sensor:
         obs = camera_lib.observe(scene, config.camera, seed=seed)
         return View(obs, obs.points, obs.point_labels, {})
@@ -315,13 +317,21 @@ def observe(scene, config: DeclutterConfig, seed: int) -> View:
     points, labels = frame.table_and_objects()
     info = {"objects_found": len(frame.object_ids), "table": [round(v, 5) for v in frame.table.plane]}
     truth = obs.labels[frame.pixels[:, 0], frame.pixels[:, 1]]  # of every point of the frame
-    joined = None
-    if frame.has_joined:
-        second = frame.joined()
-        joined_points, joined_labels = second.table_and_objects()
-        joined = (joined_points.astype(np.float32), joined_labels, truth[second.planned])
     visible = np.bincount(truth[truth >= 0], minlength=len(scene.present))
-    return View(obs, points.astype(np.float32), labels, info, joined, truth[frame.planned], visible)
+    return View(obs, points.astype(np.float32), labels, info, truth[frame.planned], visible, frame, truth)
+
+
+def hypotheses(view: View):
+    """The front end's other labellings of a clustered view, in the order a method that finds no grasp is
+    shown them (`Frame.hypotheses` after the first; each made only when asked for): ("joined" | "finer",
+    points [Q, 3] float32, labels [Q], truth [Q]). None with true masks or the exact render."""
+    if view.frame is None or view.frame.segmentation != "clusters":
+        return
+    others = view.frame.hypotheses()
+    next(others)  # the view's own labels
+    for other in others:
+        points, labels = other.table_and_objects()
+        yield other.segmentation.split()[0], points.astype(np.float32), labels, view.frame_truth[other.planned]
 
 
 def _decide(method: Method, points, labels, viewpoint, seed: int, avoid) -> Decision:
@@ -379,7 +389,7 @@ def run_scene(
             break
         t0 = time.perf_counter()
         view = observe(scene, config, s_seed + len(attempts))
-        obs, points, labels, seen, joined, truth = view.obs, view.points, view.labels, view.info, view.joined, view.truth
+        obs, points, labels, seen, truth = view.obs, view.points, view.labels, view.info, view.truth
         observe_s = time.perf_counter() - t0
         first = obs if first is None else first
         if ground_truth:
@@ -390,16 +400,17 @@ def run_scene(
             break
         avoid = np.asarray(failed, np.float64).reshape(-1, 4, 4) if memory else None
         decision: Decision = _decide(method, points, labels, viewpoint, p_seed, avoid)
-        if decision.pose is None and joined is not None:  # the frame's joined hypothesis (module doc)
-            second = _decide(method, *joined[:2], viewpoint, p_seed, avoid)
-            # Both plans' time counts: the first one ran before the second.
-            timing = {k: v + decision.timing.get(k, 0.0) if isinstance(v, float) else v for k, v in second.timing.items()}
-            if second.pose is not None:
-                decision, seen = dataclasses.replace(second, timing=timing), {**seen, "labels": "joined"}
-                points, labels, truth = joined
-            else:
+        if decision.pose is None:  # the frame's other hypotheses in turn (module doc)
+            for name, *other in hypotheses(view):
+                second = _decide(method, *other[:2], viewpoint, p_seed, avoid)
+                # Every plan's time counts: the earlier ones ran before this one.
+                timing = {k: v + decision.timing.get(k, 0.0) if isinstance(v, float) else v for k, v in second.timing.items()}
+                if second.pose is not None:
+                    decision, seen = dataclasses.replace(second, timing=timing), {**seen, "labels": name}
+                    points, labels, truth = other
+                    break
                 decision = dataclasses.replace(decision, timing=timing, reason=f"{decision.reason or 'no grasp'}; on "
-                                               f"the joined fragments: {second.reason or 'no grasp'}")
+                                               f"the {name} clusters: {second.reason or 'no grasp'}")
         if decision.pose is None:
             end, final_reason, final_timing = "no_grasp", decision.reason or "no grasp", dict(decision.timing)
             break

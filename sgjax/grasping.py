@@ -59,7 +59,7 @@ class FramePlan:
     plans: the planner's `Plan` per planned object label (one entry, None, without `all_objects`), in
     the table frame; reasons: why an object got no grasp, by label ("scene" without `all_objects`);
     timing: wall seconds; frame: the frame whose labels the grasps' objects are (the one planned on, or
-    its `Frame.joined()` when only that hypothesis gave a grasp)."""
+    the hypothesis of it that gave the grasps, `Frame.hypotheses`)."""
 
     grasps: list[Grasp]
     plans: dict
@@ -103,20 +103,25 @@ def plan_frame(planner: Planner, frame: Frame, all_objects: bool = False, top: i
     alternatives on the same object. avoid [F, 4, 4] (frame coordinates) or None: grasps not to plan
     again (e.g. ones that failed). -> FramePlan (its grasps in the frame's coordinates).
 
-    Without `all_objects`, a clustered frame whose plan finds no grasp is planned once more on its
-    joined hypothesis (`Frame.joined`: crease-cut fragments joined to their neighbour), as the
-    benchmark's harness does; FramePlan.frame says which labels the grasps refer to."""
+    Without `all_objects`, a clustered frame whose plan finds no grasp is planned again on its other
+    hypotheses in turn (`Frame.hypotheses`: the joined one, crease-cut fragments joined to their neighbour,
+    then the finer one, a pile cut into its objects), as the benchmark's harness does; FramePlan.frame
+    says which labels the grasps refer to."""
     if top < 1:
         raise ValueError(f"top must be >= 1, got {top}")
-    result = _plan_frame(planner, frame, all_objects, top, seed, avoid)
-    if all_objects or result.grasps or not frame.has_joined:
+    hypotheses = frame.hypotheses()
+    result = _plan_frame(planner, next(hypotheses), all_objects, top, seed, avoid)
+    if all_objects or result.grasps:
         return result
-    second = _plan_frame(planner, frame.joined(), all_objects, top, seed, avoid)
-    timing = {"plan_s": result.timing["plan_s"] + second.timing["plan_s"]}
-    if second.grasps:
-        return dataclasses.replace(second, timing=timing)
-    reasons = {key: f"{why}; on the joined fragments: {second.reasons.get(key, 'no grasp')}" for key, why in result.reasons.items()}
-    return dataclasses.replace(result, reasons=reasons, timing=timing)
+    spent, reasons = result.timing["plan_s"], dict(result.reasons)
+    for other in hypotheses:
+        again = _plan_frame(planner, other, all_objects, top, seed, avoid)
+        spent += again.timing["plan_s"]
+        if again.grasps:
+            return dataclasses.replace(again, timing={"plan_s": spent})
+        reasons = {key: f"{why}; on the {other.segmentation}: {again.reasons.get(key, 'no grasp')}"
+                   for key, why in reasons.items()}
+    return dataclasses.replace(result, reasons=reasons, timing={"plan_s": spent})
 
 
 def _plan_frame(planner: Planner, frame: Frame, all_objects: bool, top: int, seed: int, avoid) -> FramePlan:

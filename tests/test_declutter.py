@@ -713,19 +713,23 @@ def test_with_clusters_a_method_without_a_grasp_plans_again_on_the_joined_fragme
     config = dataclasses.replace(CONFIG, sensor="stereo", masks="clusters", extra_attempts=0)
     scene = declutter.make_benchmark_scene(objects, N_OBJECTS, 0, 2, config)
     view = declutter.observe(scene, config, declutter.scene_seed(0, 2))
-    assert view.joined is not None and view.info["objects_found"] > len(np.unique(view.joined[1][view.joined[1] > 0]))
+    hypotheses = list(declutter.hypotheses(view))
+    name, *joined = hypotheses[0]
+    assert name == "joined" and view.info["objects_found"] > len(np.unique(joined[1][joined[1] > 0]))
     method = SecondPlan()
     run = run_scene(method, objects, N_OBJECTS, seed=0, index=2, config=config, setting="tiny-4")
     first = run.log["attempts"][0]
     assert len(method.seen) >= 2 and first["seen"]["labels"] == "joined" and first["outcome"] == "no_object"
     np.testing.assert_array_equal(method.seen[0][1], view.labels)
-    np.testing.assert_array_equal(method.seen[1][0], view.joined[0])
-    np.testing.assert_array_equal(method.seen[1][1], view.joined[1])
+    np.testing.assert_array_equal(method.seen[1][0], joined[0])
+    np.testing.assert_array_equal(method.seen[1][1], joined[1])
     assert first["timing"]["total_s"] == pytest.approx(2 * timing()["total_s"])  # both plans' time
     never = Never()
     run = run_scene(never, objects, N_OBJECTS, seed=0, index=2, config=config, setting="tiny-4")
-    assert never.calls == 2 and run.log["end"] == "no_grasp"
-    assert run.log["final_reason"] == "nothing to do; on the joined fragments: nothing to do"
+    # Every hypothesis in turn (joined, then finer where it differs), each plan's reason in the scene's.
+    assert [h[0] for h in hypotheses] in (["joined"], ["joined", "finer"])
+    assert never.calls == 1 + len(hypotheses) and run.log["end"] == "no_grasp"
+    assert run.log["final_reason"] == "nothing to do" + "".join(f"; on the {h[0]} clusters: nothing to do" for h in hypotheses)
     never = Never()
     run_scene(never, objects, N_OBJECTS, seed=0, index=2, config=dataclasses.replace(config, masks="truth"), setting="tiny-4")
     assert never.calls == 1

@@ -154,8 +154,8 @@ def test_plan_frame_tries_the_joined_hypothesis_when_the_first_finds_no_grasp(fr
     (g,) = result.grasps
     assert g.object in whole.object_ids and not result.reasons
     assert np.linalg.norm(whole.object_points(g.object) - g.center, axis=1).min() < NEAR
-    # Without the joined hypothesis the same frame gets none, and says why.
-    alone = plan_frame(planner, dataclasses.replace(frame, joined_labels=None))
+    # Without other hypotheses (the same labels as masks) the frame gets none, and says why.
+    alone = plan_frame(planner, dataclasses.replace(frame, joined_labels=None, segmentation="masks"))
     assert not alone.grasps and alone.frame is not None and "50" in alone.reasons["scene"]
 
 

@@ -21,8 +21,8 @@ import numpy as np
 from sgjax.perception.camera import (Intrinsics, existing_file, read_extrinsics, read_intrinsics, rigid_extrinsics,
                                      to_world)
 from sgjax.perception.depth import back_project, read_depth
-from sgjax.perception.segment import (OTHER, TABLE, SegmentConfig, height_threshold, plane_basis, segment_with_joined,
-                                      table_noise)
+from sgjax.perception.segment import (OTHER, TABLE, SegmentConfig, height_threshold, plane_basis, segment_finer,
+                                      segment_with_joined, table_noise)
 from sgjax.perception.table import TablePlane, fit_table
 from sgjax.utils.threads import one_blas_thread
 
@@ -42,7 +42,8 @@ class Frame:
     towards the camera), camera_position [3], intrinsics, extrinsics [4, 4] camera-to-world or None,
     image_size (height, width), segmentation "masks" | "clusters"; joined_labels int32 [N]: with
     clusters, the coarser hypothesis in which crease-cut fragments have joined their neighbour
-    (`sgjax.perception.segment.segment_with_joined`; a planner that finds no grasp tries it), else None."""
+    (`sgjax.perception.segment.segment_with_joined`; a planner that finds no grasp tries it), else None;
+    segment: the segmentation's settings (`finer` segments with them again)."""
 
     points: np.ndarray
     labels: np.ndarray
@@ -54,6 +55,7 @@ class Frame:
     image_size: tuple[int, int]
     segmentation: str
     joined_labels: np.ndarray | None = None
+    segment: SegmentConfig = SegmentConfig()
 
     @property
     def frame(self) -> str:
@@ -92,6 +94,32 @@ class Frame:
     def has_joined(self) -> bool:
         """Whether the joined hypothesis differs from the labels (else planning on it changes nothing)."""
         return self.joined_labels is not None and not np.array_equal(self.joined_labels, self.labels)
+
+    def finer(self) -> Frame:
+        """This clustered frame segmented again with the finer crease test (`segment.segment_finer`: a pile
+        left as one cluster cut into its objects), segmentation "finer clusters", no joined hypothesis;
+        ValueError for a frame whose objects come from masks."""
+        if self.segmentation != "clusters":
+            raise ValueError(f"only a clustered frame has a finer hypothesis (this one's objects: {self.segmentation})")
+        heights = self.table.heights  # the fit's, of these points (None: computed again)
+        with one_blas_thread():
+            labels = segment_finer(self.points, self.pixels, self.image_size, self.table, self.camera_position,
+                                   1.0 / min(self.intrinsics.fx, self.intrinsics.fy), self.segment,
+                                   height=heights if heights is not None and len(heights) == len(self.points) else None)
+        return dataclasses.replace(self, labels=labels, joined_labels=None, segmentation="finer clusters")
+
+    def hypotheses(self):
+        """The labellings a planner tries in turn until one gives a grasp, as frames (a generator: each is
+        made only when asked for): this frame; with clusters, its joined hypothesis when it differs
+        (`joined`), then the finer one when it differs from both (`finer`)."""
+        yield self
+        if self.segmentation != "clusters":
+            return
+        if self.has_joined:
+            yield self.joined()
+        finer = self.finer()
+        if not np.array_equal(finer.labels, self.labels) and not (self.has_joined and np.array_equal(finer.labels, self.joined_labels)):
+            yield finer
 
     def label_image(self) -> np.ndarray:
         """[H, W] int32 the label of each pixel; OTHER where the frame has no point."""
@@ -181,7 +209,7 @@ class Frame:
                                                         height=table.heights), "clusters"
         else:
             labels, how = _mask_labels(ids, pixels, table.heights, segment), "masks"
-        return cls(points, labels, pixels, table, camera_position, intrinsics, extrinsics, size, how, joined)
+        return cls(points, labels, pixels, table, camera_position, intrinsics, extrinsics, size, how, joined, segment)
 
 
 def _is_path(value) -> bool:

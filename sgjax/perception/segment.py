@@ -16,7 +16,10 @@ gives a second, coarser hypothesis in which every cluster of fewer than `fragmen
 creases alone part from others has joined the one it shares the most crease links with
 (`merge_fragments`). It is a fallback: a planner that finds no grasp on the first labelling tries it
 (`sgjax.grasping.plan_frame`, the benchmark's harness); as the only labelling it cost grasp success
-(docs/experiments.md, 2026-12-06).
+(docs/experiments.md, 2026-12-06). `segment_finer` gives the third, finer one: the same growing with a
+sharper crease test (`finer_concave_deg`), which cuts touching objects apart that meet in a shallow crease
+(a pile left as one cluster, too large for any grasp) and cuts curved objects into more pieces; the
+planner's last resort, when neither of the others gave a grasp (docs/experiments.md, 2026-12-07).
 """
 
 from __future__ import annotations
@@ -41,7 +44,8 @@ class SegmentConfig:
     surfaces on either side of two neighbours separates them (touching objects meet in one);
     normal_window, normal_span: the smoothing of the normals (pixels); fragment_points: in the joined
     hypothesis (`segment_with_joined`), a cluster of fewer points that only concave creases part from
-    others joins the one it shares the most crease links with (0: the same as the first); min_points:
+    others joins the one it shares the most crease links with (0: the same as the first);
+    finer_concave_deg: the crease angle of the finer hypothesis (`segment_finer`); min_points:
     smaller clusters are dropped (noise, flying pixels); min_height: points less than this above the
     table are table, unless the table's own noise is larger (then 3 sigma of it, estimated from the
     frame); max_height: points higher above the table are background."""
@@ -52,6 +56,7 @@ class SegmentConfig:
     normal_window: int = 7
     normal_span: int = 3
     fragment_points: int = 200
+    finer_concave_deg: float = 15.0
     min_points: int = 50
     min_height: float = 0.004
     max_height: float = 0.5
@@ -67,6 +72,8 @@ class SegmentConfig:
             raise ValueError(f"need fragment_points >= 0 (0: no joining), got {self.fragment_points}")
         if not (self.grazing > 0 and 0 < self.concave_deg <= 180):
             raise ValueError(f"need grazing > 0 and 0 < concave_deg <= 180, got {self.grazing} and {self.concave_deg}")
+        if not 0 < self.finer_concave_deg <= self.concave_deg:
+            raise ValueError(f"need 0 < finer_concave_deg <= concave_deg ({self.concave_deg}), got {self.finer_concave_deg}")
 
 
 def table_noise(height: np.ndarray) -> float:
@@ -352,6 +359,15 @@ def segment_with_joined(points: np.ndarray, pixels: np.ndarray, image_size: tupl
     from one pass. height: the points' heights above the table [N] when the caller has them
     (`table.height(points)`; `fit_table` leaves them in `TablePlane.heights` for the points it fitted)."""
     return _segment(points, pixels, image_size, table, viewpoint, pixel_angle, config, True, height)
+
+
+def segment_finer(points: np.ndarray, pixels: np.ndarray, image_size: tuple[int, int], table: TablePlane,
+                  viewpoint, pixel_angle: float, config: SegmentConfig = SegmentConfig(), *,
+                  height: np.ndarray | None = None) -> np.ndarray:
+    """The finer hypothesis' labels int32 [N] (module doc): `segment_objects` with concave creases of
+    config.finer_concave_deg parting neighbours. height: as `segment_with_joined`'s."""
+    finer = dataclasses.replace(config, concave_deg=config.finer_concave_deg)
+    return _segment(points, pixels, image_size, table, viewpoint, pixel_angle, finer, False, height)[0]
 
 
 def _segment(points, pixels, image_size, table: TablePlane, viewpoint, pixel_angle: float, config: SegmentConfig,
