@@ -801,7 +801,7 @@ def _plan_frame(args: argparse.Namespace) -> int:
         result = plan_frame(planner, frame, all_objects=args.all_objects, top=top, seed=args.seed)
     except (ValueError, FileNotFoundError) as exc:
         return _fail(_one_line(exc))
-    frame = result.frame  # its joined hypothesis when only that gave a grasp
+    frame = result.frame  # the hypothesis that gave the grasps (`Frame.hypotheses`)
     plans = [p for p in result.plans.values() if p is not None]
     timing = {"perception_s": perception_s, "setup_s": setup_s, "plan_s": result.timing["plan_s"],
               "stage1_s": sum(p.timing.get("stage1_s", 0.0) for p in plans),

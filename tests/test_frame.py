@@ -112,6 +112,90 @@ def test_the_joined_hypothesis_gives_the_pieces_a_crease_cuts_off_back():
         masked.joined()
 
 
+def render_wedges(wedges):
+    """(depth, ids) as `render` (the table, the floor, the stand) with prisms instead of boxes: (x0, x1, y0, y1,
+    a, b) stands on the table over x0..x1, y0..y1 with its top at z = a + b (x - x0)."""
+    depth, ids = render([])
+    T = camera_pose()
+    v, u = np.mgrid[0:K.height, 0:K.width]
+    rays = np.stack([(u - K.cx) / K.fx, (v - K.cy) / K.fy, np.ones_like(u, float)], -1) @ T[:3, :3].T
+    origin = T[:3, 3]
+    depth = np.where(depth > 0, depth, np.inf)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for k, (x0, x1, y0, y1, a, b) in enumerate(wedges):
+            normal = np.array([-b, 0.0, 1.0])  # of the top: z - b x = a - b x0
+            t = (a - b * x0 - normal @ origin) / (rays @ normal)
+            at = origin + t[..., None] * rays
+            best = np.where((t > 0) & (at[..., 0] >= x0) & (at[..., 0] <= x1) & (at[..., 1] >= y0) & (at[..., 1] <= y1),
+                            t, np.inf)
+            for axis, value, (lo, hi) in ((0, x0, (y0, y1)), (0, x1, (y0, y1)), (1, y0, (x0, x1)), (1, y1, (x0, x1))):
+                t = (value - origin[axis]) / rays[..., axis]
+                at = origin + t[..., None] * rays
+                side = ((t > 0) & (at[..., 1 - axis] >= lo) & (at[..., 1 - axis] <= hi) & (at[..., 2] >= 0)
+                        & (at[..., 2] <= a + b * (at[..., 0] - x0)))
+                best = np.where(side & (t < best), t, best)
+            nearer = best < depth
+            depth, ids = np.where(nearer, best, depth), np.where(nearer, k + 1, ids)
+    return np.where(np.isfinite(depth), depth, 0.0), ids
+
+
+def test_the_finer_hypothesis_parts_objects_that_meet_in_a_shallow_crease():
+    """Two prisms whose tops meet in a valley of 24 deg (each tilted 12 deg), the second set back 2 cm: a
+    crease too shallow for the first labelling (30 deg), so they come out as one object; the finer
+    hypothesis (15 deg) parts them, each whole, and is the last the frame offers a planner. With masks
+    there is none."""
+    tilt = np.tan(np.deg2rad(12.0))
+    depth, ids = render_wedges([(-0.07, 0.0, -0.03, 0.03, 0.03 + 0.07 * tilt, -tilt),
+                                (0.0, 0.07, -0.01, 0.05, 0.03, tilt)])
+    frame = Frame.from_depth(depth, K, extrinsics=camera_pose())
+    truth = truth_of(frame, ids)
+    (merged,) = frame.object_ids
+    # (its lowest 4 mm count as table, some 60 points along its outline as no object: 10-15 % of it)
+    assert all(np.mean(frame.labels[truth == k] == merged) > 0.8 for k in (1, 2))
+    finer = frame.finer()
+    assert finer.segmentation == "finer clusters" and finer.joined_labels is None and len(finer.object_ids) == 2
+    for k in (1, 2):
+        found, counts = np.unique(finer.labels[truth == k], return_counts=True)
+        label = found[np.argmax(counts)]
+        assert label > 0 and counts.max() > 0.8 * np.sum(truth == k) and np.all(truth[finer.labels == label] == k)
+    np.testing.assert_array_equal(finer.labels[truth <= 0], frame.labels[truth <= 0])  # the table, the rest as before
+    assert [h.segmentation for h in frame.hypotheses()][0] == "clusters"
+    assert [h.segmentation for h in frame.hypotheses()][-1] == "finer clusters"
+    # A finer crease angle equal to the first's: the finer hypothesis is the first, and not offered again.
+    same = Frame.from_depth(depth, K, extrinsics=camera_pose(), segment=SegmentConfig(finer_concave_deg=30.0))
+    assert np.array_equal(same.finer().labels, same.labels)
+    assert "finer clusters" not in [h.segmentation for h in same.hypotheses()]
+    masked = Frame.from_depth(depth, K, extrinsics=camera_pose(), masks=ids)
+    assert [h.segmentation for h in masked.hypotheses()] == ["masks"]
+    with pytest.raises(ValueError, match="only a clustered frame"):
+        masked.finer()
+
+
+def test_plan_frame_takes_its_grasp_from_the_finer_hypothesis_when_the_others_give_none(small_db):
+    """Two 6 x 10 cm prisms in a shallow valley come out as one 12 x 10 cm object, wider than the gripper
+    opens from every side: no grasp on it (nor on the joined hypothesis); the finer one parts them and the
+    grasp lies on one prism, named by the finer frame's labels."""
+    import dataclasses
+
+    from sgjax.grasping import plan_frame
+    from sgjax.planner import Planner
+
+    tilt = np.tan(np.deg2rad(12.0))
+    depth, ids = render_wedges([(-0.06, 0.0, -0.05, 0.05, 0.03 + 0.06 * tilt, -tilt),
+                                (0.0, 0.06, -0.03, 0.07, 0.03, tilt)])
+    frame = Frame.from_depth(depth, K, extrinsics=camera_pose())
+    planner = Planner(db=small_db)
+    assert len(frame.object_ids) == 1
+    alone = plan_frame(planner, dataclasses.replace(frame, segmentation="masks"))  # the first labelling alone
+    assert not alone.grasps
+    result = plan_frame(planner, frame)
+    assert result.frame.segmentation == "finer clusters" and len(result.frame.object_ids) == 2
+    (grasp,) = result.grasps
+    on = truth_of(result.frame, ids)[result.frame.labels == grasp.object]
+    assert np.all(on == on[0]) and on[0] in (1, 2)
+    assert np.linalg.norm(result.frame.object_points(grasp.object) - grasp.center, axis=1).min() < 0.02
+
+
 def test_camera_and_world_frames_agree():
     depth, _ = render(SEPARATE)
     camera = Frame.from_depth(depth, K)
@@ -211,3 +295,5 @@ def test_segment_config_is_checked():
         SegmentConfig(concave_deg=0.0)
     with pytest.raises(ValueError, match="fragment_points >= 0"):
         SegmentConfig(fragment_points=-1)
+    with pytest.raises(ValueError, match="finer_concave_deg <= concave_deg"):
+        SegmentConfig(finer_concave_deg=40.0)
