@@ -62,7 +62,7 @@ def test_a_second_process_loads_the_exported_program(tmp_path):
     assert len(list((tmp_path / "exported").iterdir())) == 2
     (tmp_path / "exported" / files[0]).write_bytes(b"not a program")
     again = _run(env)
-    assert (again["exported"], again["loaded"]) == (1, 0) and again["sum"] == first["sum"]
+    assert (again["exported"], again["loaded"], again["unreadable"]) == (1, 0, 1) and again["sum"] == first["sum"]
 
 
 def test_off_exports_nothing(tmp_path):
@@ -94,3 +94,8 @@ def test_prefetch_loads_the_last_run_s_programs_on_another_thread(tmp_path):
     assert other["exported"] == 1 and other["sum"] == 3.0 * 10 + 2
     now = json.loads(lists[0].read_text())["keys"]
     assert len(now) == 1 and now != listed and now[0].startswith("toy-")
+    # A listed program whose file is damaged: the prefetch fails on it once, the call exports it again
+    # without reading the file a second time.
+    (tmp_path / "exported" / (now[0] + ".jaxexport")).write_bytes(b"not a program")
+    damaged = _run(env, scale=3.0, group="toy command")
+    assert (damaged["unreadable"], damaged["loaded"], damaged["exported"]) == (1, 0, 1) and damaged["sum"] == other["sum"]

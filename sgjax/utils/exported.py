@@ -37,7 +37,7 @@ from sgjax.utils.files import atomic_write_bytes
 SUFFIX = ".jaxexport"
 _loaded: dict[str, tuple[Callable, Any]] = {}  # key -> (jitted call of the exported program, output treedef)
 _jitted: dict[tuple, Callable] = {}  # (name, static) -> jax.jit of the function, when export is off
-stats = {"exported": 0, "loaded": 0, "jitted": 0}  # programs made or loaded in this process
+stats = {"exported": 0, "loaded": 0, "jitted": 0, "unreadable": 0}  # programs made, loaded or not loadable here
 _pending: dict[str, Future] = {}  # key -> prefetch's future (its (run, out_tree), or None when it failed)
 _used: dict[str, None] = {}  # keys the prefetched group called, in the order of their first call
 _manifest: dict = {}  # "path" and "keys" of the prefetched group's list (see `prefetch`)
@@ -90,8 +90,9 @@ def call(name: str, fn: Callable, args: tuple, static: Hashable = ()) -> Any:
     key = program_key(name, static, leaves, treedef)
     if key not in _loaded:
         future = _pending.pop(key, None)
-        loaded = None if future is None else future.result()
-        _loaded[key] = loaded if loaded is not None else _load_or_export(key, fn, leaves, treedef)
+        # A prefetched program has been tried already: a file that failed there is not read again.
+        loaded = _load_exported(key) if future is None else future.result()
+        _loaded[key] = loaded if loaded is not None else _export(key, fn, leaves, treedef)
     if "path" in _manifest and key not in _used:  # a prefetched group lists its calls
         _remember(key)
     run, out_tree = _loaded[key]
@@ -170,6 +171,7 @@ def _load_exported(key: str) -> tuple[Callable, Any] | None:
         stats["loaded"] += 1
         return run, jax.tree.structure(blob["skeleton"])
     except Exception:  # a foreign, damaged or older file: the caller exports the program again
+        stats["unreadable"] += 1
         return None
 
 
@@ -183,11 +185,10 @@ def _remember(key: str) -> None:
         atomic_write_bytes(_manifest["path"], json.dumps({"keys": used}).encode())
 
 
-def _load_or_export(key: str, fn: Callable, leaves: list, treedef) -> tuple[Callable, Any]:
-    loaded = _load_exported(key)
-    if loaded is not None:
-        return loaded
-    box = {}  # none on disk, or an unreadable or foreign file: export (and replace it)
+def _export(key: str, fn: Callable, leaves: list, treedef) -> tuple[Callable, Any]:
+    """fn traced for `leaves` and exported to the cache under `key` (replacing an unreadable or foreign
+    file) -> `call`'s (run, output treedef)."""
+    box = {}  # the output's treedef, recorded while tracing
 
     def flat(*xs):
         out = fn(*jax.tree.unflatten(treedef, list(xs)))
