@@ -44,7 +44,7 @@ from __future__ import annotations
 import dataclasses
 import inspect
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from typing import NamedTuple
 
 import numpy as np
@@ -321,7 +321,7 @@ def observe(scene, config: DeclutterConfig, seed: int) -> View:
     return View(obs, points.astype(np.float32), labels, info, truth[frame.planned], visible, frame, truth)
 
 
-def hypotheses(view: View):
+def hypotheses(view: View) -> Iterator[tuple[str, np.ndarray, np.ndarray, np.ndarray]]:
     """The front end's other labellings of a clustered view, in the order a method that finds no grasp is
     shown them (`Frame.hypotheses` after the first; each made only when asked for): ("joined" | "finer",
     points [Q, 3] float32, labels [Q], truth [Q]). None with true masks or the exact render."""

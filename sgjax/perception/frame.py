@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+from collections.abc import Iterator
 
 import numpy as np
 
@@ -104,11 +105,11 @@ class Frame:
         heights = self.table.heights  # the fit's, of these points (None: computed again)
         with one_blas_thread():
             labels = segment_finer(self.points, self.pixels, self.image_size, self.table, self.camera_position,
-                                   1.0 / min(self.intrinsics.fx, self.intrinsics.fy), self.segment,
+                                   _pixel_angle(self.intrinsics), self.segment,
                                    height=heights if heights is not None and len(heights) == len(self.points) else None)
         return dataclasses.replace(self, labels=labels, joined_labels=None, segmentation="finer clusters")
 
-    def hypotheses(self):
+    def hypotheses(self) -> Iterator[Frame]:
         """The labellings a planner tries in turn until one gives a grasp, as frames (a generator: each is
         made only when asked for): this frame; with clusters, its joined hypothesis when it differs
         (`joined`), then the finer one when it differs from both (`finer`)."""
@@ -118,7 +119,8 @@ class Frame:
         if self.has_joined:
             yield self.joined()
         finer = self.finer()
-        if not np.array_equal(finer.labels, self.labels) and not (self.has_joined and np.array_equal(finer.labels, self.joined_labels)):
+        joined_same = self.has_joined and np.array_equal(finer.labels, self.joined_labels)
+        if not np.array_equal(finer.labels, self.labels) and not joined_same:
             yield finer
 
     def label_image(self) -> np.ndarray:
@@ -205,11 +207,16 @@ class Frame:
         joined = None
         if ids is None:
             (labels, joined), how = segment_with_joined(points, pixels, size, table, camera_position,
-                                                        1.0 / min(intrinsics.fx, intrinsics.fy), segment,
+                                                        _pixel_angle(intrinsics), segment,
                                                         height=table.heights), "clusters"
         else:
             labels, how = _mask_labels(ids, pixels, table.heights, segment), "masks"
         return cls(points, labels, pixels, table, camera_position, intrinsics, extrinsics, size, how, joined, segment)
+
+
+def _pixel_angle(intrinsics: Intrinsics) -> float:
+    """Radians per pixel (the larger of the two axes'): the segmentation's link tolerance scales with it."""
+    return 1.0 / min(intrinsics.fx, intrinsics.fy)
 
 
 def _is_path(value) -> bool:
