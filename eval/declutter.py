@@ -287,18 +287,21 @@ def make_benchmark_scene(objects: Sequence, n_objects: int, seed: int, index: in
 class View(NamedTuple):
     """What a method sees of a scene (`observe`): obs (the exact observation, which decides the
     outcome), points [P, 3], labels [P], info (the front end's {"objects_found", "table" plane}, else
-    {}); through a sensor, truth [P]: the exact render's object index at each point's pixel (-1: none),
-    visible int [n]: each object's points in the whole frame (`cluster_grade`), frame: the front end's
-    `Frame` and frame_truth [N] the truth at each of its points (`hypotheses`); else None."""
+    {}); through a sensor, visible int [n]: each object's points in the whole frame (`cluster_grade`),
+    frame: the front end's `Frame` and frame_truth [N]: the exact render's object index at each of its
+    points' pixels (-1: none); else None. truth [P]: frame_truth at the points handed to the method."""
 
     obs: camera_lib.Observation
     points: np.ndarray
     labels: np.ndarray
     info: dict
-    truth: np.ndarray | None = None
     visible: np.ndarray | None = None
     frame: Frame | None = None
     frame_truth: np.ndarray | None = None
+
+    @property
+    def truth(self) -> np.ndarray | None:
+        return None if self.frame is None else self.frame_truth[self.frame.planned]
 
 
 def observe(scene, config: DeclutterConfig, seed: int) -> View:
@@ -318,7 +321,7 @@ def observe(scene, config: DeclutterConfig, seed: int) -> View:
     info = {"objects_found": len(frame.object_ids), "table": [round(v, 5) for v in frame.table.plane]}
     truth = obs.labels[frame.pixels[:, 0], frame.pixels[:, 1]]  # of every point of the frame
     visible = np.bincount(truth[truth >= 0], minlength=len(scene.present))
-    return View(obs, points.astype(np.float32), labels, info, truth[frame.planned], visible, frame, truth)
+    return View(obs, points.astype(np.float32), labels, info, visible, frame, truth)
 
 
 def hypotheses(view: View) -> Iterator[tuple[str, np.ndarray, np.ndarray, np.ndarray]]:

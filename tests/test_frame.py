@@ -32,12 +32,17 @@ def camera_pose():
     return T
 
 
-def render(boxes, T=None, stand=True):
-    """(depth [H, W] metres, ids [H, W]: box k + 1, 0 elsewhere) of the table, the floor, the boxes."""
+def camera_rays(T=None):
+    """(rays [H, W, 3] in the world, each the direction of its pixel with unit camera z (t along it is the
+    depth), the camera's origin [3]) of the camera at camera-to-world T (None: `camera_pose()`)."""
     T = camera_pose() if T is None else T
     v, u = np.mgrid[0:K.height, 0:K.width]
-    rays = np.stack([(u - K.cx) / K.fx, (v - K.cy) / K.fy, np.ones_like(u, float)], -1) @ T[:3, :3].T
-    origin = T[:3, 3]
+    return np.stack([(u - K.cx) / K.fx, (v - K.cy) / K.fy, np.ones_like(u, float)], -1) @ T[:3, :3].T, T[:3, 3]
+
+
+def render(boxes, T=None, stand=True):
+    """(depth [H, W] metres, ids [H, W]: box k + 1, 0 elsewhere) of the table, the floor, the boxes."""
+    rays, origin = camera_rays(T)
     with np.errstate(divide="ignore", invalid="ignore"):
         depth = np.full(rays.shape[:2], np.inf)
         for height, extent in ((0.0, TABLE_HALF), (-0.7, np.inf)):
@@ -116,10 +121,7 @@ def render_wedges(wedges):
     """(depth, ids) as `render` (the table, the floor, the stand) with prisms instead of boxes: (x0, x1, y0, y1,
     a, b) stands on the table over x0..x1, y0..y1 with its top at z = a + b (x - x0)."""
     depth, ids = render([])
-    T = camera_pose()
-    v, u = np.mgrid[0:K.height, 0:K.width]
-    rays = np.stack([(u - K.cx) / K.fx, (v - K.cy) / K.fy, np.ones_like(u, float)], -1) @ T[:3, :3].T
-    origin = T[:3, 3]
+    rays, origin = camera_rays()
     depth = np.where(depth > 0, depth, np.inf)
     with np.errstate(divide="ignore", invalid="ignore"):
         for k, (x0, x1, y0, y1, a, b) in enumerate(wedges):

@@ -116,11 +116,11 @@ class Frame:
         yield self
         if self.segmentation != "clusters":
             return
-        if self.has_joined:
+        joined = self.has_joined
+        if joined:
             yield self.joined()
         finer = self.finer()
-        joined_same = self.has_joined and np.array_equal(finer.labels, self.joined_labels)
-        if not np.array_equal(finer.labels, self.labels) and not joined_same:
+        if not np.array_equal(finer.labels, self.labels) and not (joined and np.array_equal(finer.labels, self.joined_labels)):
             yield finer
 
     def label_image(self) -> np.ndarray:
