@@ -33,10 +33,12 @@ Choices, documented:
     instance ids of the exact render, as a perfect segmenter would give) or from clustering
     ("clusters"). The method gets the table's and the objects' points (labels -1 and 1..K); what the
     front end put beyond the table is dropped. Which object a grasp is on is still decided on the exact
-    render's truth. With clusters, a method that finds no grasp plans again on the frame's other
-    hypotheses in turn (`Frame.hypotheses`: the joined one, crease-cut fragments joined to their
-    neighbour, then the finer one, a pile cut into its objects), as `sgjax plan --depth` does; the
-    attempt's "seen" says "labels": "joined" or "finer" when such a plan's grasp was executed.
+    render's truth. With clusters, the method plans on the frame's hypotheses in turn until one gives a
+    grasp (`Frame.hypotheses`, as `sgjax plan --depth` does): the parted one (touching objects merged into
+    one cluster cut apart where the finer crease test finds them), the clusters as segmented, the joined
+    one (crease-cut fragments joined to their neighbour), the finer one (a pile cut into its objects);
+    the attempt's "seen" says "labels": "parted", "clusters", "joined" or "finer" where it was not the
+    clusters as segmented.
 """
 
 from __future__ import annotations
@@ -317,8 +319,11 @@ def observe(scene, config: DeclutterConfig, seed: int) -> View:
         frame = sensors_lib.front_end(sensed, config.camera, config.masks)
     except PerceptionError as exc:
         return View(obs, np.zeros((0, 3), np.float32), np.zeros(0, np.int32), {"front_end": str(exc)})
-    points, labels = frame.table_and_objects()
-    info = {"objects_found": len(frame.object_ids), "table": [round(v, 5) for v in frame.table.plane]}
+    first = next(frame.hypotheses())  # with clusters, the parted one where it differs (`hypotheses`)
+    points, labels = first.table_and_objects()
+    info = {"objects_found": len(first.object_ids), "table": [round(v, 5) for v in frame.table.plane]}
+    if first is not frame:
+        info["labels"] = first.segmentation.split()[0]
     truth = obs.labels[frame.pixels[:, 0], frame.pixels[:, 1]]  # of every point of the frame
     visible = np.bincount(truth[truth >= 0], minlength=len(scene.present))
     return View(obs, points.astype(np.float32), labels, info, visible, frame, truth)
@@ -326,8 +331,9 @@ def observe(scene, config: DeclutterConfig, seed: int) -> View:
 
 def hypotheses(view: View) -> Iterator[tuple[str, np.ndarray, np.ndarray, np.ndarray]]:
     """The front end's other labellings of a clustered view, in the order a method that finds no grasp is
-    shown them (`Frame.hypotheses` after the first; each made only when asked for): ("joined" | "finer",
-    points [Q, 3] float32, labels [Q], truth [Q]). None with true masks or the exact render."""
+    shown them (`Frame.hypotheses` after the view's own; each made only when asked for): ("clusters" |
+    "joined" | "finer", points [Q, 3] float32, labels [Q], truth [Q]). None with true masks or the exact
+    render."""
     if view.frame is None or view.frame.segmentation != "clusters":
         return
     others = view.frame.hypotheses()

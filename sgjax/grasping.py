@@ -103,10 +103,11 @@ def plan_frame(planner: Planner, frame: Frame, all_objects: bool = False, top: i
     alternatives on the same object. avoid [F, 4, 4] (frame coordinates) or None: grasps not to plan
     again (e.g. ones that failed). -> FramePlan (its grasps in the frame's coordinates).
 
-    Without `all_objects`, a clustered frame whose plan finds no grasp is planned again on its other
-    hypotheses in turn (`Frame.hypotheses`: the joined one, crease-cut fragments joined to their neighbour,
-    then the finer one, a pile cut into its objects), as the benchmark's harness does; FramePlan.frame
-    says which labels the grasps refer to."""
+    A clustered frame is planned on its hypotheses in turn (`Frame.hypotheses`; with `all_objects` the
+    first only): the parted one (touching objects merged into one cluster cut apart where the finer crease
+    test finds them), then, while a plan finds no grasp, the clusters as segmented, the joined one
+    (crease-cut fragments joined to their neighbour), the finer one (a pile cut into its objects), as the
+    benchmark's harness does; FramePlan.frame says which labels the grasps refer to."""
     if top < 1:
         raise ValueError(f"top must be >= 1, got {top}")
     hypotheses = frame.hypotheses()

@@ -141,11 +141,12 @@ def render_wedges(wedges):
     return np.where(np.isfinite(depth), depth, 0.0), ids
 
 
-def test_the_finer_hypothesis_parts_objects_that_meet_in_a_shallow_crease():
+def test_the_finer_and_parted_hypotheses_part_objects_that_meet_in_a_shallow_crease():
     """Two prisms whose tops meet in a valley of 24 deg (each tilted 12 deg), the second set back 2 cm: a
     crease too shallow for the first labelling (30 deg), so they come out as one object; the finer
-    hypothesis (15 deg) parts them, each whole, and is the last the frame offers a planner. With masks
-    there is none."""
+    hypothesis (15 deg) parts them, each whole. The parted one takes that cut (two sizeable pieces), keeps
+    the same points as objects and is the first the frame offers a planner, the clusters as segmented
+    next. With masks there is neither."""
     tilt = np.tan(np.deg2rad(12.0))
     depth, ids = render_wedges([(-0.07, 0.0, -0.03, 0.03, 0.03 + 0.07 * tilt, -tilt),
                                 (0.0, 0.07, -0.01, 0.05, 0.03, tilt)])
@@ -154,45 +155,57 @@ def test_the_finer_hypothesis_parts_objects_that_meet_in_a_shallow_crease():
     (merged,) = frame.object_ids
     # (its lowest 4 mm count as table, some 60 points along its outline as no object: 10-15 % of it)
     assert all(np.mean(frame.labels[truth == k] == merged) > 0.8 for k in (1, 2))
-    finer = frame.finer()
+    finer, parted = frame.finer(), frame.parted()
     assert finer.segmentation == "finer clusters" and finer.joined_labels is None and len(finer.object_ids) == 2
-    for k in (1, 2):
-        found, counts = np.unique(finer.labels[truth == k], return_counts=True)
-        label = found[np.argmax(counts)]
-        assert label > 0 and counts.max() > 0.8 * np.sum(truth == k) and np.all(truth[finer.labels == label] == k)
-    np.testing.assert_array_equal(finer.labels[truth <= 0], frame.labels[truth <= 0])  # the table, the rest as before
-    assert [h.segmentation for h in frame.hypotheses()][0] == "clusters"
-    assert [h.segmentation for h in frame.hypotheses()][-1] == "finer clusters"
+    assert parted.segmentation == "parted clusters" and parted.joined_labels is None and len(parted.object_ids) == 2
+    for cut in (finer, parted):
+        for k in (1, 2):
+            found, counts = np.unique(cut.labels[truth == k], return_counts=True)
+            label = found[np.argmax(counts)]
+            assert label > 0 and counts.max() > 0.8 * np.sum(truth == k) and np.all(truth[cut.labels == label] == k)
+        np.testing.assert_array_equal(cut.labels[truth <= 0], frame.labels[truth <= 0])  # the table, the rest as before
+    np.testing.assert_array_equal(parted.labels > 0, frame.labels > 0)
+    order = [h.segmentation for h in frame.hypotheses()]
+    assert order[:2] == ["parted clusters", "clusters"] and len(order) == len(set(order))
+    # Pieces smaller than part_points: nothing is cut, the clusters come first, the finer ones last.
+    whole = Frame.from_depth(depth, K, extrinsics=camera_pose(), segment=SegmentConfig(part_points=100000))
+    assert np.array_equal(whole.parted().labels, whole.labels)
+    order = [h.segmentation for h in whole.hypotheses()]
+    assert order[0] == "clusters" and order[-1] == "finer clusters" and "parted clusters" not in order
     # A finer crease angle equal to the first's: the finer hypothesis is the first, and not offered again.
     same = Frame.from_depth(depth, K, extrinsics=camera_pose(), segment=SegmentConfig(finer_concave_deg=30.0))
     assert np.array_equal(same.finer().labels, same.labels)
-    assert "finer clusters" not in [h.segmentation for h in same.hypotheses()]
+    order = [h.segmentation for h in same.hypotheses()]
+    assert order[0] == "clusters" and "finer clusters" not in order and "parted clusters" not in order
     masked = Frame.from_depth(depth, K, extrinsics=camera_pose(), masks=ids)
     assert [h.segmentation for h in masked.hypotheses()] == ["masks"]
-    with pytest.raises(ValueError, match="only a clustered frame"):
-        masked.finer()
+    for other in (masked.finer, masked.parted):
+        with pytest.raises(ValueError, match="only a clustered frame"):
+            other()
 
 
-def test_plan_frame_takes_its_grasp_from_the_finer_hypothesis_when_the_others_give_none(small_db):
+def test_plan_frame_takes_its_grasp_from_the_parted_hypothesis_or_else_the_finer_one(small_db):
     """Two 6 x 10 cm prisms in a shallow valley come out as one 12 x 10 cm object, wider than the gripper
-    opens from every side: no grasp on it (nor on the joined hypothesis); the finer one parts them and the
-    grasp lies on one prism, named by the finer frame's labels."""
+    opens from every side: no grasp on it (nor on the joined hypothesis). The parted hypothesis, planned
+    first, cuts them apart; where it does not (part_points above either prism's size), plan_frame moves on
+    to the finer one, which does. Either way the grasp lies on one prism, named by that frame's labels."""
     from sgjax.grasping import plan_frame
     from sgjax.planner import Planner
 
     tilt = np.tan(np.deg2rad(12.0))
     depth, ids = render_wedges([(-0.06, 0.0, -0.05, 0.05, 0.03 + 0.06 * tilt, -tilt),
                                 (0.0, 0.06, -0.03, 0.07, 0.03, tilt)])
-    frame = Frame.from_depth(depth, K, extrinsics=camera_pose())
     planner = Planner(db=small_db)
-    assert len(frame.object_ids) == 1
-    result = plan_frame(planner, frame)
-    # plan_frame moves on only when a labelling gives no grasp: the first (and the joined) gave none.
-    assert result.frame.segmentation == "finer clusters" and len(result.frame.object_ids) == 2
-    (grasp,) = result.grasps
-    on = truth_of(result.frame, ids)[result.frame.labels == grasp.object]
-    assert np.all(on == on[0]) and on[0] in (1, 2)
-    assert np.linalg.norm(result.frame.object_points(grasp.object) - grasp.center, axis=1).min() < 0.02
+    for segment, labelling in ((SegmentConfig(), "parted clusters"), (SegmentConfig(part_points=100000), "finer clusters")):
+        frame = Frame.from_depth(depth, K, extrinsics=camera_pose(), segment=segment)
+        assert len(frame.object_ids) == 1
+        result = plan_frame(planner, frame)
+        # plan_frame moves on only when a labelling gives no grasp: for the finer one, the first (and the joined) gave none.
+        assert result.frame.segmentation == labelling and len(result.frame.object_ids) == 2
+        (grasp,) = result.grasps
+        on = truth_of(result.frame, ids)[result.frame.labels == grasp.object]
+        assert np.all(on == on[0]) and on[0] in (1, 2)
+        assert np.linalg.norm(result.frame.object_points(grasp.object) - grasp.center, axis=1).min() < 0.02
 
 
 def test_camera_and_world_frames_agree():
@@ -296,3 +309,5 @@ def test_segment_config_is_checked():
         SegmentConfig(fragment_points=-1)
     with pytest.raises(ValueError, match="finer_concave_deg <= concave_deg"):
         SegmentConfig(finer_concave_deg=40.0)
+    with pytest.raises(ValueError, match="part_points >= 1"):
+        SegmentConfig(part_points=0)

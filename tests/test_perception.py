@@ -398,3 +398,30 @@ def test_segmentation_takes_the_heights_the_table_fit_left():
     np.testing.assert_array_equal(given[1], plain[1])
     with pytest.raises(ValueError, match="height must be"):
         segment_with_joined(*args, height=table.heights[:-1])
+
+
+def test_parted_labels_cut_only_clusters_the_finer_test_cuts_into_sizeable_pieces():
+    """Cluster 1 (two blobs 10 cm apart) is cut by the finer labels into pieces of 300 and 250 points and
+    a speck of 20 beside the second: it becomes two objects, the speck joining the piece it lies next to.
+    Cluster 2 is cut into 400 points and a 150-point sliver (under part_points): it stays whole. The
+    table and everything else keep their labels."""
+    from sgjax.perception.segment import OTHER, TABLE, parted_labels
+
+    rng = np.random.default_rng(0)
+    a, b, speck = rng.normal(0, 0.01, (300, 3)), rng.normal(0, 0.01, (250, 3)) + [0.1, 0, 0], rng.normal(0, 0.002, (20, 3)) + [0.12, 0, 0]
+    c, sliver = rng.normal(0, 0.01, (400, 3)) + [0, 0.3, 0], rng.normal(0, 0.01, (150, 3)) + [0.05, 0.3, 0]
+    table, other = rng.normal(0, 0.1, (500, 3)) - [0, 0, 0.2], rng.normal(0, 0.1, (30, 3)) + [0, 0, 0.6]
+    points = np.concatenate([a, b, speck, c, sliver, table, other])
+    labels = np.concatenate([np.full(570, 1), np.full(550, 2), np.full(500, TABLE), np.full(30, OTHER)]).astype(np.int32)
+    # The finer test: cluster 1 in three pieces (ids 4, 7, 9), cluster 2 in two (5, 6); the speck's
+    # points partly dropped (OTHER), as segment_finer drops pieces under min_points.
+    finer = np.concatenate([np.full(300, 7), np.full(250, 4), np.r_[np.full(12, 9), np.full(8, OTHER)],
+                            np.full(400, 5), np.full(150, 6), np.full(500, TABLE), np.full(30, OTHER)]).astype(np.int32)
+    out = parted_labels(points, labels, finer, part_points=200)
+    assert out.dtype == np.int32 and out.shape == labels.shape
+    first, second = out[:300], out[300:570]
+    assert len(np.unique(first)) == 1 and len(np.unique(second)) == 1 and first[0] != second[0]
+    assert first[0] > 2 and second[0] > 2  # fresh ids, above every label of the first labelling
+    np.testing.assert_array_equal(out[570:], labels[570:])  # cluster 2, the table and the rest as they were
+    # A part_points above the second piece's size: nothing is cut.
+    np.testing.assert_array_equal(parted_labels(points, labels, finer, part_points=260), labels)

@@ -14,6 +14,7 @@ of world +z. Errors are `PerceptionError` (a ValueError) with one line naming th
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
 from collections.abc import Iterator
 
@@ -22,7 +23,7 @@ import numpy as np
 from sgjax.perception.camera import (Intrinsics, existing_file, read_extrinsics, read_intrinsics, rigid_extrinsics,
                                      to_world)
 from sgjax.perception.depth import back_project, read_depth
-from sgjax.perception.segment import (OTHER, TABLE, SegmentConfig, height_threshold, plane_basis, segment_finer,
+from sgjax.perception.segment import (OTHER, TABLE, SegmentConfig, height_threshold, parted_labels, plane_basis, segment_finer,
                                       segment_with_joined, table_noise)
 from sgjax.perception.table import TablePlane, fit_table
 from sgjax.utils.threads import one_blas_thread
@@ -100,28 +101,44 @@ class Frame:
         """This clustered frame segmented again with the finer crease test (`segment.segment_finer`: a pile
         left as one cluster cut into its objects), segmentation "finer clusters", no joined hypothesis;
         ValueError for a frame whose objects come from masks."""
+        return dataclasses.replace(self, labels=self._finer_labels, joined_labels=None, segmentation="finer clusters")
+
+    def parted(self) -> Frame:
+        """This clustered frame with each cluster that the finer hypothesis cuts into two or more sizeable
+        pieces replaced by them (`segment.parted_labels`: touching objects merged into one cut apart),
+        segmentation "parted clusters", no joined hypothesis; ValueError for a frame whose objects come
+        from masks."""
+        labels = parted_labels(self.points, self.labels, self._finer_labels, self.segment.part_points)
+        return dataclasses.replace(self, labels=labels, joined_labels=None, segmentation="parted clusters")
+
+    @functools.cached_property
+    def _finer_labels(self) -> np.ndarray:
+        # Once per frame: both `finer` and `parted` need it (cached_property writes past the frozen dataclass).
         if self.segmentation != "clusters":
             raise ValueError(f"only a clustered frame has a finer hypothesis (this one's objects: {self.segmentation})")
         heights = self.table.heights  # the fit's, of these points (None: computed again)
         with one_blas_thread():
-            labels = segment_finer(self.points, self.pixels, self.image_size, self.table, self.camera_position,
-                                   _pixel_angle(self.intrinsics), self.segment,
-                                   height=heights if heights is not None and len(heights) == len(self.points) else None)
-        return dataclasses.replace(self, labels=labels, joined_labels=None, segmentation="finer clusters")
+            return segment_finer(self.points, self.pixels, self.image_size, self.table, self.camera_position,
+                                 _pixel_angle(self.intrinsics), self.segment,
+                                 height=heights if heights is not None and len(heights) == len(self.points) else None)
 
     def hypotheses(self) -> Iterator[Frame]:
         """The labellings a planner tries in turn until one gives a grasp, as frames (a generator: each is
-        made only when asked for): this frame; with clusters, its joined hypothesis when it differs
-        (`joined`), then the finer one when it differs from both (`finer`)."""
-        yield self
+        made only when asked for), each only when its labels differ from all before it: with clusters, the
+        parted one (`parted`), this frame, its joined hypothesis (`joined`), the finer one (`finer`); with
+        masks, this frame alone."""
         if self.segmentation != "clusters":
+            yield self
             return
-        joined = self.has_joined
-        if joined:
-            yield self.joined()
-        finer = self.finer()
-        if not np.array_equal(finer.labels, self.labels) and not (joined and np.array_equal(finer.labels, self.joined_labels)):
-            yield finer
+        parted = self.parted()
+        first = self if np.array_equal(parted.labels, self.labels) else parted
+        tried: list[np.ndarray] = []
+        for make in (lambda: first, lambda: self, lambda: self.joined() if self.joined_labels is not None else self,
+                     self.finer):
+            frame = make()
+            if not any(np.array_equal(frame.labels, labels) for labels in tried):
+                tried.append(frame.labels)
+                yield frame
 
     def label_image(self) -> np.ndarray:
         """[H, W] int32 the label of each pixel; OTHER where the frame has no point."""

@@ -20,6 +20,9 @@ creases alone part from others has joined the one it shares the most crease link
 sharper crease test (`finer_concave_deg`), which cuts touching objects apart that meet in a shallow crease
 (a pile left as one cluster, too large for any grasp) and cuts curved objects into more pieces; the
 planner's last resort, when neither of the others gave a grasp (docs/experiments.md, 2026-12-07).
+`parted_labels` takes from it only the clusters it cuts into two or more sizeable pieces (touching objects
+merged into one, whose grasps would close on both) and leaves the rest as segmented: a planner's first
+labelling (docs/experiments.md, 2026-12-07).
 """
 
 from __future__ import annotations
@@ -45,7 +48,9 @@ class SegmentConfig:
     normal_window, normal_span: the smoothing of the normals (pixels); fragment_points: in the joined
     hypothesis (`segment_with_joined`), a cluster of fewer points that only concave creases part from
     others joins the one it shares the most crease links with (0: the same as the first);
-    finer_concave_deg: the crease angle of the finer hypothesis (`segment_finer`); min_points:
+    finer_concave_deg: the crease angle of the finer hypothesis (`segment_finer`); part_points: the
+    parted hypothesis (`parted_labels`) cuts a cluster that the finer one cuts into two or more pieces of
+    at least this many points; min_points:
     smaller clusters are dropped (noise, flying pixels); min_height: points less than this above the
     table are table, unless the table's own noise is larger (then 3 sigma of it, estimated from the
     frame); max_height: points higher above the table are background."""
@@ -57,6 +62,7 @@ class SegmentConfig:
     normal_span: int = 3
     fragment_points: int = 200
     finer_concave_deg: float = 15.0
+    part_points: int = 200
     min_points: int = 50
     min_height: float = 0.004
     max_height: float = 0.5
@@ -68,6 +74,8 @@ class SegmentConfig:
         if self.min_points < 1 or self.normal_window < 1 or self.normal_span < 1:
             raise ValueError(f"need min_points, normal_window and normal_span >= 1, got {self.min_points}, "
                              f"{self.normal_window} and {self.normal_span}")
+        if self.part_points < 1:
+            raise ValueError(f"need part_points >= 1, got {self.part_points}")
         if self.fragment_points < 0:
             raise ValueError(f"need fragment_points >= 0 (0: no joining), got {self.fragment_points}")
         if not (self.grazing > 0 and 0 < self.concave_deg <= 180):
@@ -368,6 +376,34 @@ def segment_finer(points: np.ndarray, pixels: np.ndarray, image_size: tuple[int,
     config.finer_concave_deg parting neighbours. height: as `segment_with_joined`'s."""
     finer = dataclasses.replace(config, concave_deg=config.finer_concave_deg)
     return _segment(points, pixels, image_size, table, viewpoint, pixel_angle, finer, False, height)[0]
+
+
+def parted_labels(points: np.ndarray, labels: np.ndarray, finer: np.ndarray, part_points: int) -> np.ndarray:
+    """The parted hypothesis' labels int32 [N] (module doc): each cluster of `labels` [N] that the finer
+    hypothesis' labels `finer` [N] cut into two or more pieces of at least `part_points` points is replaced
+    by those pieces (fresh ids above the largest label), its other points (smaller pieces, points the
+    finer test dropped) joining the piece of their nearest point among points [N, 3]; every other
+    label as it was. So the same points are objects as in `labels`, and a cluster is cut only where the
+    finer test finds two sizeable objects in it."""
+    from scipy.spatial import cKDTree
+
+    labels = np.asarray(labels, np.int32)
+    out = labels.copy()
+    fresh = int(labels.max(initial=0)) + 1
+    for cluster in np.unique(labels[labels > 0]):
+        rows = np.flatnonzero(labels == cluster)
+        ids, counts = np.unique(finer[rows], return_counts=True)
+        pieces = ids[(ids > 0) & (counts >= part_points)]
+        if len(pieces) < 2:
+            continue
+        in_piece = np.isin(finer[rows], pieces)
+        # Each piece a fresh id; the rest of the cluster to the piece of its nearest point.
+        ids_of = np.searchsorted(pieces, finer[rows[in_piece]]) + fresh
+        _, nearest = cKDTree(points[rows[in_piece]]).query(points[rows[~in_piece]])
+        out[rows[in_piece]] = ids_of
+        out[rows[~in_piece]] = ids_of[nearest]
+        fresh += len(pieces)
+    return out
 
 
 def _segment(points, pixels, image_size, table: TablePlane, viewpoint, pixel_angle: float, config: SegmentConfig,
