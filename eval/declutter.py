@@ -418,8 +418,9 @@ def run_scene(
                     decision, seen = dataclasses.replace(second, timing=timing), {**seen, "labels": name}
                     points, labels, truth = other
                     break
+                where = "clusters" if name == "clusters" else f"{name} clusters"  # as `Frame.segmentation` says
                 decision = dataclasses.replace(decision, timing=timing, reason=f"{decision.reason or 'no grasp'}; on "
-                                               f"the {name} clusters: {second.reason or 'no grasp'}")
+                                               f"the {where}: {second.reason or 'no grasp'}")
         if decision.pose is None:
             end, final_reason, final_timing = "no_grasp", decision.reason or "no grasp", dict(decision.timing)
             break

@@ -733,7 +733,8 @@ def test_with_clusters_a_method_without_a_grasp_plans_again_on_the_other_hypothe
     # Every hypothesis in turn (each where it differs from those before), each plan's reason in the scene's.
     assert names in (["joined"], ["joined", "finer"], ["clusters", "joined"], ["clusters", "joined", "finer"])
     assert never.calls == 1 + len(hypotheses) and run.log["end"] == "no_grasp"
-    assert run.log["final_reason"] == "nothing to do" + "".join(f"; on the {h[0]} clusters: nothing to do" for h in hypotheses)
+    where = {"clusters": "clusters", "joined": "joined clusters", "finer": "finer clusters"}
+    assert run.log["final_reason"] == "nothing to do" + "".join(f"; on the {where[n]}: nothing to do" for n in names)
     never = Never()
     run_scene(never, objects, N_OBJECTS, seed=0, index=2, config=dataclasses.replace(config, masks="truth"), setting="tiny-4")
     assert never.calls == 1
