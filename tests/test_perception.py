@@ -408,7 +408,8 @@ def test_parted_labels_cut_only_clusters_the_finer_test_cuts_into_sizeable_piece
     from sgjax.perception.segment import OTHER, TABLE, parted_labels
 
     rng = np.random.default_rng(0)
-    a, b, speck = rng.normal(0, 0.01, (300, 3)), rng.normal(0, 0.01, (250, 3)) + [0.1, 0, 0], rng.normal(0, 0.002, (20, 3)) + [0.12, 0, 0]
+    a, b = rng.normal(0, 0.01, (300, 3)), rng.normal(0, 0.01, (250, 3)) + [0.1, 0, 0]
+    speck = rng.normal(0, 0.002, (20, 3)) + [0.12, 0, 0]
     c, sliver = rng.normal(0, 0.01, (400, 3)) + [0, 0.3, 0], rng.normal(0, 0.01, (150, 3)) + [0.05, 0.3, 0]
     table, other = rng.normal(0, 0.1, (500, 3)) - [0, 0, 0.2], rng.normal(0, 0.1, (30, 3)) + [0, 0, 0.6]
     points = np.concatenate([a, b, speck, c, sliver, table, other])

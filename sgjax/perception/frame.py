@@ -23,8 +23,8 @@ import numpy as np
 from sgjax.perception.camera import (Intrinsics, existing_file, read_extrinsics, read_intrinsics, rigid_extrinsics,
                                      to_world)
 from sgjax.perception.depth import back_project, read_depth
-from sgjax.perception.segment import (OTHER, TABLE, SegmentConfig, height_threshold, parted_labels, plane_basis, segment_finer,
-                                      segment_with_joined, table_noise)
+from sgjax.perception.segment import (OTHER, TABLE, SegmentConfig, height_threshold, parted_labels, plane_basis,
+                                      segment_finer, segment_with_joined, table_noise)
 from sgjax.perception.table import TablePlane, fit_table
 from sgjax.utils.threads import one_blas_thread
 
