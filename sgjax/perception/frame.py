@@ -131,10 +131,12 @@ class Frame:
             yield self
             return
         parted = self.parted()
-        first = self if np.array_equal(parted.labels, self.labels) else parted
-        tried: list[np.ndarray] = []
-        for make in (lambda: first, lambda: self, lambda: self.joined() if self.joined_labels is not None else self,
-                     self.finer):
+        tried = [self.labels]
+        if not np.array_equal(parted.labels, self.labels):
+            tried.append(parted.labels)
+            yield parted
+        yield self
+        for make in ([self.joined] if self.joined_labels is not None else []) + [self.finer]:
             frame = make()
             if not any(np.array_equal(frame.labels, labels) for labels in tried):
                 tried.append(frame.labels)
