@@ -331,16 +331,16 @@ def observe(scene, config: DeclutterConfig, seed: int) -> View:
 
 def hypotheses(view: View) -> Iterator[tuple[str, np.ndarray, np.ndarray, np.ndarray]]:
     """The front end's other labellings of a clustered view, in the order a method that finds no grasp is
-    shown them (`Frame.hypotheses` after the view's own; each made only when asked for): ("clusters" |
-    "joined" | "finer", points [Q, 3] float32, labels [Q], truth [Q]). None with true masks or the exact
-    render."""
+    shown them (`Frame.hypotheses` after the view's own; each made only when asked for): (its
+    `Frame.segmentation`: "clusters" | "joined clusters" | "finer clusters", points [Q, 3] float32, labels [Q],
+    truth [Q]). None with true masks or the exact render."""
     if view.frame is None or view.frame.segmentation != "clusters":
         return
     others = view.frame.hypotheses()
     next(others)  # the view's own labels
     for other in others:
         points, labels = other.table_and_objects()
-        yield other.segmentation.split()[0], points.astype(np.float32), labels, view.frame_truth[other.planned]
+        yield other.segmentation, points.astype(np.float32), labels, view.frame_truth[other.planned]
 
 
 def _decide(method: Method, points, labels, viewpoint, seed: int, avoid) -> Decision:
@@ -410,15 +410,14 @@ def run_scene(
         avoid = np.asarray(failed, np.float64).reshape(-1, 4, 4) if memory else None
         decision: Decision = _decide(method, points, labels, viewpoint, p_seed, avoid)
         if decision.pose is None:  # the frame's other hypotheses in turn (module doc)
-            for name, *other in hypotheses(view):
+            for where, *other in hypotheses(view):
                 second = _decide(method, *other[:2], viewpoint, p_seed, avoid)
                 # Every plan's time counts: the earlier ones ran before this one.
                 timing = {k: v + decision.timing.get(k, 0.0) if isinstance(v, float) else v for k, v in second.timing.items()}
                 if second.pose is not None:
-                    decision, seen = dataclasses.replace(second, timing=timing), {**seen, "labels": name}
+                    decision, seen = dataclasses.replace(second, timing=timing), {**seen, "labels": where.split()[0]}
                     points, labels, truth = other
                     break
-                where = "clusters" if name == "clusters" else f"{name} clusters"  # as `Frame.segmentation` says
                 decision = dataclasses.replace(decision, timing=timing, reason=f"{decision.reason or 'no grasp'}; on "
                                                f"the {where}: {second.reason or 'no grasp'}")
         if decision.pose is None:

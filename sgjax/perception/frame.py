@@ -108,8 +108,12 @@ class Frame:
         pieces replaced by them (`segment.parted_labels`: touching objects merged into one cut apart),
         segmentation "parted clusters", no joined hypothesis; ValueError for a frame whose objects come
         from masks."""
-        labels = parted_labels(self.points, self.labels, self._finer_labels, self.segment.part_points)
-        return dataclasses.replace(self, labels=labels, joined_labels=None, segmentation="parted clusters")
+        return dataclasses.replace(self, labels=self._parted_labels, joined_labels=None, segmentation="parted clusters")
+
+    @functools.cached_property
+    def _parted_labels(self) -> np.ndarray:
+        # Once per frame: the harness asks for the hypotheses again when the first plan gives no grasp.
+        return parted_labels(self.points, self.labels, self._finer_labels, self.segment.part_points)
 
     @functools.cached_property
     def _finer_labels(self) -> np.ndarray:
