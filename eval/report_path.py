@@ -6,8 +6,12 @@ seen-10 and seen-20 on the seen objects, and the unseen setting on the sealed ob
 ("unseen-sealed-10"). Table II (simulated): the paper's real-world table re-created (the ag-105-145
 gripper, stereo depth, segmented masks; `eval.declutter.SETTINGS`) for the methods of its Table II, on
 the same seed: real-similar on the seen objects, real-novel on the sealed ones ("real-novel-unseen-sealed").
-This module is the only caller of `run_benchmark(..., for_report=True)`; development runs use
-`sgjax declutter` on other seeds (seed 0 is the development seed of the docs).
+Table I through a sensor (`sgjax table-i --camera realsense --masks clusters`): the same runs, the
+methods seeing the sensor model's depth through the front end of a user's frame (`eval.declutter`), so
+that the sensor's cost is measured against Table I's own rows on data no decision saw. A table whose
+settings fix their hardware (Table II) takes no other camera or masks. This module is the only caller of
+`run_benchmark(..., for_report=True)`; development runs use `sgjax declutter` on other seeds (seed 0 is
+the development seed of the docs).
 
 Rows run one method after another in the table's order (the methods the README compares first) so that
 an interrupted report has whole rows; each run resumes from its logs. A method that cannot run here
@@ -114,13 +118,23 @@ def run_table(
     methods: Sequence[str] | None = None,
     progress: bool = True,
     say: Callable[[str], None] = print,
+    camera: str | None = None,
+    masks: str | None = None,
 ) -> tuple[list, list[str]]:
     """Run (or continue) the report's `table` into `out` -> (results: `eval.benchmark.BenchmarkResult`s, methods
     skipped with the reason).
-    methods: a subset of the table's (None: all of them). An unknown method raises
-    `eval.methods.UnknownMethod` before any run."""
+    methods: a subset of the table's (None: all of them). camera (`envs.sensors`), masks ("truth" |
+    "clusters"): how the methods see the scenes (`eval.declutter.DeclutterConfig`'s sensor and masks; None:
+    the settings' own, exact depth and true masks for Table I).
+    An unknown method, or a camera or masks that a setting fixes otherwise, raises (`eval.methods.UnknownMethod`,
+    ValueError) before any run."""
     from eval.benchmark import run_benchmark
+    from eval.declutter import DeclutterConfig, apply_setting, get_setting
     from eval.methods import MethodUnavailable, check_method
+
+    config = DeclutterConfig(**{k: v for k, v in (("sensor", camera), ("masks", masks)) if v is not None})
+    for setting, _ in table.settings:
+        apply_setting(get_setting(setting), config)  # ValueError where the setting fixes another camera or masks
 
     results, skipped, runnable = [], [], []
     for method in table.methods if methods is None else methods:  # all checked first: a typo fails now, not hours on
@@ -135,7 +149,7 @@ def run_table(
     for method in runnable:
         for setting, objects in table.settings:
             result = run_benchmark(method, setting=setting, scenes=scenes, seed=SEED, out=out, objects=objects,
-                                   progress=progress, for_report=True)
+                                   config=config, progress=progress, for_report=True)
             s = result.summary
             say(f"{result.method} {result.setting} (seed {SEED}, N = {s.scenes}): GSR {s.gsr:.2%} TSR {s.tsr:.2%} GA {s.ga}")
             results.append(result)

@@ -963,7 +963,7 @@ def _cmd_report_table(args: argparse.Namespace) -> int:
     methods = None if args.methods is None else [m.strip() for m in args.methods.split(",") if m.strip()]
     try:
         results, skipped = report_path.run_table(args.out, args.table, scenes=args.scenes, methods=methods,
-                                                 progress=not args.quiet)
+                                                 progress=not args.quiet, camera=args.camera, masks=args.masks)
     except (ValueError, MethodUnavailable, FileNotFoundError) as exc:
         return _fail(str(exc))
     except KeyboardInterrupt:
@@ -1309,6 +1309,10 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--scenes", type=int, default=30, help="scenes per setting (default 30)")
         p.add_argument("--methods", default=None, metavar="M,...",
                        help=f"a subset of the methods ({', '.join(table.methods)}), in this order")
+        p.add_argument("--camera", default=None, choices=SENSORS,
+                       help="the depth the methods see (envs.sensors; default: the settings' own, exact for Table I)")
+        p.add_argument("--masks", default=None, choices=("truth", "clusters"),
+                       help="objects from the true masks or from segmentation (default: the settings' own, truth for Table I)")
         p.add_argument("--quiet", action="store_true", help="no progress bars")
         p.set_defaults(func=_cmd_report_table, table=table)
 

@@ -163,6 +163,18 @@ def test_the_report_command_names_an_unknown_method_before_any_work(tmp_path, ca
     assert not (tmp_path / "report").exists()
 
 
+def test_table_i_runs_through_a_sensor_and_table_ii_keeps_its_own(tmp_path, capsys):
+    """Table II's settings fix their camera (stereo) and masks: `sgjax table-ii --camera` with another one
+    is refused before any work (`sgjax table-i --camera C --masks M` runs Table I through a sensor)."""
+    from eval import report_path
+
+    with pytest.raises(ValueError, match="fixes the sensor"):
+        report_path.run_table(tmp_path / "report", report_path.TABLE_II, camera="realsense", say=lambda _: None)
+    assert main(["table-ii", "--out", str(tmp_path / "report"), "--camera", "realsense"]) == 2
+    assert "'real-similar' fixes the sensor" in capsys.readouterr().err
+    assert not (tmp_path / "report").exists()
+
+
 def test_the_report_records_the_code_and_checkpoints_it_ran_with(tmp_path):
     import json
 
