@@ -17,6 +17,7 @@ from sgjax.presets import names as preset_names
 from sgjax.utils.files import atomic_write
 
 SENSORS = ("exact", "kinect", "realsense", "stereo")  # envs.sensors.SENSORS (a test keeps them equal)
+MASKS = ("truth", "clusters")  # eval.declutter.MASKS (the same test)
 # envs.trial.BACKENDS, spelled out here so that the CLI imports no simulator before a command runs.
 BACKEND_HELP = ("grasp trial engine: cpu (default; MuJoCo's C engine), mjx (MJX: its warp implementation on a GPU "
                 "where warp-lang is installed, else its JAX one), mjx-jax, mjx-warp")
@@ -1280,7 +1281,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--camera", default="exact", choices=SENSORS,
                    help="the depth the method sees: exact (default) or a sensor model's (envs.sensors), through the "
                         "front end of a real frame (sgjax.perception)")
-    p.add_argument("--masks", default="truth", choices=("truth", "clusters"),
+    p.add_argument("--masks", default="truth", choices=MASKS,
                    help="objects from the true instance masks (default) or from clustering the points above the table")
     p.add_argument("--pictures", type=int, default=3, help="draw the first this many scenes (default 3)")
     p.add_argument(
@@ -1311,7 +1312,7 @@ def build_parser() -> argparse.ArgumentParser:
                        help=f"a subset of the methods ({', '.join(table.methods)}), in this order")
         p.add_argument("--camera", default=None, choices=SENSORS,
                        help="the depth the methods see (envs.sensors; default: the settings' own, exact for Table I)")
-        p.add_argument("--masks", default=None, choices=("truth", "clusters"),
+        p.add_argument("--masks", default=None, choices=MASKS,
                        help="objects from the true masks or from segmentation (default: the settings' own, truth for Table I)")
         p.add_argument("--quiet", action="store_true", help="no progress bars")
         p.set_defaults(func=_cmd_report_table, table=table)

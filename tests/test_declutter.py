@@ -755,9 +755,10 @@ def test_the_exact_camera_keeps_todays_cloud_and_key(objects):
 
 def test_sensor_and_mask_choices_are_checked_and_the_cli_offers_each_sensor():
     from envs.sensors import SENSORS
+    from sgjax_cli.commands import MASKS as CLI_MASKS
     from sgjax_cli.commands import SENSORS as CLI_SENSORS
 
-    assert tuple(SENSORS) == CLI_SENSORS
+    assert tuple(SENSORS) == CLI_SENSORS and declutter.MASKS == CLI_MASKS
     with pytest.raises(ValueError, match="exact, kinect, realsense, stereo"):
         DeclutterConfig(sensor="lidar")
     with pytest.raises(ValueError, match="unknown masks 'sam'"):

@@ -163,7 +163,7 @@ def test_the_report_command_names_an_unknown_method_before_any_work(tmp_path, ca
     assert not (tmp_path / "report").exists()
 
 
-def test_table_i_runs_through_a_sensor_and_table_ii_keeps_its_own(tmp_path, capsys):
+def test_table_ii_refuses_another_camera_before_any_work(tmp_path, capsys):
     """Table II's settings fix their camera (stereo) and masks: `sgjax table-ii --camera` with another one
     is refused before any work (`sgjax table-i --camera C --masks M` runs Table I through a sensor)."""
     from eval import report_path
