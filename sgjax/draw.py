@@ -104,7 +104,10 @@ def _cloud_views(fig, slots, points, poses, widths, scene_points, colour_of, spe
         names = ("x", "y", "z") if identity else ("x'", "y'", "up")
         ax.set_xlabel(names[0])
         ax.set_ylabel(names[1])
-        ax.set_zlabel(names[2])
+        if elev > 80:  # the top view looks down the vertical axis: its ticks would pile up in one corner
+            ax.set_zticks([])
+        else:
+            ax.set_zlabel(names[2])
 
 
 def draw_grasps(
