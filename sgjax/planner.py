@@ -520,6 +520,33 @@ class Planner:
         n = sum(len(c) for c in candidates)
         return Plan(None, None, None, 0.0, None, None, None, reason, n, timing, list(candidates), scores, None, objects)
 
+    def judge(self, scene_points, poses, widths, seed: int = 0) -> dict[str, np.ndarray]:
+        """E-RNet's judgement of given grasps as a plan's Stage 2 makes it (the same Stage-2 scene cloud of
+        `scene_points` [N, 3] and `seed`, the same compiled calls): poses [M, 4, 4], widths [M] ->
+        {"eval_prob" [M], "refine_prob" [M, K], "valid" bool [M]} (NumPy; valid False where the closing
+        region holds no scene point, with probabilities 0). For scoring another sampler's grasps, or a
+        teacher's labels (`train.distill`)."""
+        cfg = self.config
+        poses = np.asarray(poses, np.float32).reshape(-1, 4, 4)
+        widths = np.asarray(widths, np.float32).reshape(-1)
+        if len(poses) != len(widths):
+            raise ValueError(f"got {len(poses)} poses but {len(widths)} widths")
+        scene_pad, scene_mask = self._scene(_cloud(scene_points, "scene_points"), seed)
+        thresholds = np.array([cfg.eval_threshold, cfg.refine_threshold], np.float32)
+        parts = []
+        for begin in range(0, len(poses), cfg.stage2_sizes[-1]):
+            p, w = poses[begin:begin + cfg.stage2_sizes[-1]], widths[begin:begin + cfg.stage2_sizes[-1]]
+            slots = cfg.stage2_slots(len(p))
+            padded_poses, padded_widths = policy.padded_batch(p, w, slots)
+            out, _ = self._score(scene_pad, scene_mask, padded_poses, padded_widths, np.arange(slots) < len(p), seed,
+                                 thresholds)
+            parts.append({k: np.asarray(out[k])[:len(p)] for k in ("eval_prob", "refine_prob", "valid")})
+        if not parts:
+            k = self.model.config.n_refinements if scorers.has_refinement(self.model) else 0
+            return {"eval_prob": np.zeros(0, np.float32), "refine_prob": np.zeros((0, k), np.float32),
+                    "valid": np.zeros(0, bool)}
+        return {k: np.concatenate([part[k] for part in parts]) for k in parts[0]}
+
     def stage2_cloud(self, scene_points, seed: int = 0) -> np.ndarray:
         """The Stage-2 scene cloud a plan of `scene_points` [N, 3] with `seed` crops from: its real points
         [C, 3] float32 in the order the crops read them (C <= scene_cloud.max_points). Stored with a
