@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -32,14 +33,19 @@ def made(tmp_path_factory, small_db):
     return out, written, objects, planner
 
 
-def test_soft_cross_entropy_is_the_hard_one_on_hard_labels_and_the_formula_between():
+def test_soft_cross_entropy_is_the_hard_one_on_hard_labels_and_is_not_smoothed_again():
     logits = jnp.asarray([[0.3, -1.2], [2.0, 0.5], [-0.4, 0.9]], jnp.float32)
     hard = jnp.asarray([1, 0, 1], jnp.int32)
-    assert np.allclose(evaluation_loss(logits, hard, 0.1), evaluation_loss(logits, hard.astype(jnp.float32), 0.1), atol=1e-7)
+    assert np.allclose(evaluation_loss(logits, hard, 0.0), evaluation_loss(logits, hard.astype(jnp.float32), 0.0), atol=1e-7)
     y = jnp.asarray([0.25, 0.9, 0.5], jnp.float32)
     log_p = np.log(np.exp(np.asarray(logits)) / np.exp(np.asarray(logits)).sum(1, keepdims=True))
-    want = -np.mean(0.9 * ((1 - np.asarray(y)) * log_p[:, 0] + np.asarray(y) * log_p[:, 1]) + 0.05 * log_p.sum(1))
+    want = -np.mean((1 - np.asarray(y)) * log_p[:, 0] + np.asarray(y) * log_p[:, 1])
+    # The label smoothing of hard labels is not applied to soft ones (a teacher's probabilities carry it).
     assert np.isclose(float(evaluation_loss(logits, y, 0.1)), want, atol=1e-6)
+    # Its minimum lies at the teacher's probabilities: the gradient vanishes at logits that give p = y.
+    at_y = jnp.stack([jnp.zeros(3), jnp.log(y / (1 - y))], -1)
+    grad = jax.grad(lambda z: evaluation_loss(z, y, 0.1))(at_y)
+    assert np.abs(np.asarray(grad)).max() < 1e-6
 
 
 def test_soft_labels_outside_zero_one_are_refused(tmp_path):

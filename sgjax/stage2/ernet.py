@@ -401,8 +401,10 @@ def evaluation_loss(
     """Paper L_e: -1/B sum_i [(1 - eps) log p_{i, y_i} + eps / C sum_c log p_{i, c}].
 
     logits[B, C], labels int[B] in [0, C), or float[B] in [0, 1] with C = 2: soft labels, a teacher's
-    P(success) (`train.distill`), the cross-entropy with [1 - y, y]; weights[B] (None: all 1; a weighted
-    mean otherwise) -> scalar.
+    P(success) (`train.distill`), the cross-entropy with [1 - y, y] and no smoothing (eps ignored): a
+    teacher trained with smoothing carries it in its probabilities already, and smoothing them again pulls
+    a student's scores towards 0.5 (below the planner's 0.7 thresholds; docs/experiments.md, 2026-12-07);
+    weights[B] (None: all 1; a weighted mean otherwise) -> scalar.
     """
     log_p = jax.nn.log_softmax(logits, axis=-1)
     labels = jnp.asarray(labels)
@@ -410,9 +412,8 @@ def evaluation_loss(
         if logits.shape[-1] != 2:
             raise ValueError(f"soft labels need two classes, got logits of shape {logits.shape}")
         y = labels.astype(log_p.dtype)
-        picked = (1.0 - y) * log_p[:, 0] + y * log_p[:, 1]
-    else:
-        picked = jnp.take_along_axis(log_p, labels.astype(jnp.int32)[:, None], axis=-1)[:, 0]
+        return _weighted_mean(-((1.0 - y) * log_p[:, 0] + y * log_p[:, 1]), weights)
+    picked = jnp.take_along_axis(log_p, labels.astype(jnp.int32)[:, None], axis=-1)[:, 0]
     per_sample = -((1.0 - epsilon) * picked + epsilon / logits.shape[-1] * jnp.sum(log_p, axis=-1))
     return _weighted_mean(per_sample, weights)
 
