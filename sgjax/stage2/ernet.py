@@ -402,9 +402,9 @@ def evaluation_loss(
 
     logits[B, C], labels int[B] in [0, C), or float[B] in [0, 1] with C = 2: soft labels, a teacher's
     P(success) (`train.distill`), the cross-entropy with [1 - y, y] and no smoothing (eps ignored): a
-    teacher trained with smoothing carries it in its probabilities already, and smoothing them again pulls
-    a student's scores towards 0.5 (below the planner's 0.7 thresholds; docs/experiments.md, 2026-12-07);
-    weights[B] (None: all 1; a weighted mean otherwise) -> scalar.
+    teacher trained with smoothing carries it in its probabilities already, and smoothing them again would
+    map a student's optimum p to 0.9 p + 0.05, towards 0.5; weights[B] (None: all 1; a weighted mean
+    otherwise) -> scalar.
     """
     log_p = jax.nn.log_softmax(logits, axis=-1)
     labels = jnp.asarray(labels)
