@@ -35,7 +35,7 @@ from sgjax.perception import PerceptionError
 from sgjax.planner import Planner
 from sgjax.utils.files import atomic_write_text
 from train import dataset, sources
-from train.label import LabelConfig, labelled_scene, prepare_objects, scene_blocks, scene_seed
+from train.label import LabelConfig, labelled_scene, prepare_objects, scene_blocks, scene_seed, shard_base
 
 CONFIG_FILE = "distill.json"
 
@@ -193,16 +193,8 @@ def distill(first: int, end: int, out_dir: str | os.PathLike, config: DistillCon
         planner = teacher_planner(config, gripper)
     written = []
     for a, b in tqdm(blocks, desc="distill", unit="shard", disable=not progress):
-        parts, clouds = [], []
-        for index in range(a, b):
-            got = distill_scene(index, objects, config, scene_configs, planner)
-            if got is None:
-                continue
-            samples, scene_clouds = got
-            samples["cloud_row"] = samples["cloud_row"] + len(clouds)
-            parts.append(samples)
-            clouds += scene_clouds
-        columns = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]} if parts else dataset.empty_labels()
+        scenes = [distill_scene(index, objects, config, scene_configs, planner) for index in range(a, b)]
+        columns, clouds = dataset.join_scenes([scene for scene in scenes if scene is not None])
         path = os.path.join(out_dir, _shard_name(a, b))
         dataset.write_label_shard(path, columns, clouds)
         written.append(path)
@@ -211,4 +203,4 @@ def distill(first: int, end: int, out_dir: str | os.PathLike, config: DistillCon
 
 def _shard_name(first: int, end: int) -> str:
     """The shard of scenes [first, end), named as labelling names its shards."""
-    return f"scenes-{first:06d}-{end:06d}{dataset.SHARD_SUFFIX}"
+    return shard_base(first, end) + dataset.SHARD_SUFFIX
