@@ -335,7 +335,11 @@ def _train_options(args: argparse.Namespace) -> int:
             model={"paper": network.paper, "light": network.light, "tiny": network.tiny}[args.model](**hand),
             spec=spec,
         )
-        result = run(args.data, args.out, config, progress=not args.quiet, init=args.init)  # one directory or several
+        from train.distill import data_sensor
+
+        sensor = data_sensor(args.data)  # a student of distillation sets records the sensor it was taught
+        result = run(args.data, args.out, config, progress=not args.quiet, init=args.init,  # one directory or several
+                     extra_meta=None if sensor is None else {"sensor": sensor})
     except (dataset.DatasetError, ValueError) as exc:
         return _fail(str(exc))
     except KeyboardInterrupt:
@@ -725,11 +729,11 @@ ONE_FRAME_STAGE1_SIZES = (4,)  # `sgjax plan`'s Stage-1 batch size (`PlannerConf
 ONE_FRAME_STAGE2_SLOTS = 128  # and its smallest Stage-2 batch (`PlannerConfig.stage2_min_slots`)
 
 
-def _planner(args: argparse.Namespace, spec, db, per_object: bool):
+def _planner(args: argparse.Namespace, spec, db, per_object: bool, sensed: bool = False):
     """The planner of `sgjax plan`: --preset for --gripper's spec, with --model's E-RNet (None: the one
-    shipped for the gripper) or, for `--model none`, no network (Stage 1's order, no refinement). A
-    checkpoint trained for another gripper is warned about in one line. per_object: the process plans
-    one object at a time (a target mask, --all-objects), not whole scenes."""
+    shipped for the gripper and, sensed, for a depth camera's clouds) or, for `--model none`, no network
+    (Stage 1's order, no refinement). A checkpoint trained for another gripper is warned about in one
+    line. per_object: the process plans one object at a time (a target mask, --all-objects), not whole scenes."""
     import dataclasses
 
     from sgjax import presets
@@ -747,7 +751,7 @@ def _planner(args: argparse.Namespace, spec, db, per_object: bool):
     if args.model == NO_NETWORK:
         return stage1_order_planner(db, config)
     with _warnings_as_notes():  # the checkpoint trained for another gripper: one line
-        return Planner(model=args.model, db=db, config=config)
+        return Planner(model=args.model, db=db, config=config, sensed=sensed)
 
 
 def _prefetch_programs(args: argparse.Namespace, spec, form: str) -> None:
@@ -823,7 +827,7 @@ def _plan_frame(args: argparse.Namespace) -> int:
 
     try:
         db = _database(spec, args.small_db, args.db, check=args.gripper is not None)
-        planner = _planner(args, spec, db, per_object=args.all_objects)
+        planner = _planner(args, spec, db, per_object=args.all_objects, sensed=True)  # a depth camera's frame
         setup_s = time.perf_counter() - start - perception_s
         result = plan_frame(planner, frame, all_objects=args.all_objects, top=top, seed=args.seed)
     except (ValueError, FileNotFoundError) as exc:

@@ -30,14 +30,16 @@ from envs import sensors
 from envs.scene import stage2_scene_cloud
 from sgjax import presets
 from sgjax.geometry.gripper import GripperSpec
+from sgjax.geometry.gripper_files import gripper_to_dict
 from sgjax.geometry.pointcloud import table_plane
 from sgjax.perception import PerceptionError
 from sgjax.planner import Planner
 from sgjax.utils.files import atomic_write_text
 from train import dataset, sources
-from train.label import LabelConfig, labelled_scene, prepare_objects, scene_blocks, scene_seed, shard_base
+from train.label import (DISTILL_CONFIG_FILE, LabelConfig, label_config, labelled_scene, prepare_objects, scene_blocks,
+                         scene_seed, shard_base)
 
-CONFIG_FILE = "distill.json"
+CONFIG_FILE = DISTILL_CONFIG_FILE
 
 
 @dataclasses.dataclass(frozen=True)
@@ -73,11 +75,9 @@ class DistillConfig:
 
     def scenes(self, gripper: GripperSpec | None = None) -> list[LabelConfig]:
         """The LabelConfig of each scene size (n_objects[k]), for `gripper` (None: the default one)."""
-        out = []
-        for n in self.n_objects:
-            config = LabelConfig(n_objects=n, seed=self.seed, object_set=self.objects, sensor="exact")
-            out.append(config if gripper is None else config.with_gripper(gripper))
-        return out
+        # As `sgjax label` builds them (`label_config`): the seen set's held-out objects stay out of the
+        # scenes, another set has none.
+        return [label_config(objects=self.objects, seed=self.seed, n_objects=n, gripper=gripper) for n in self.n_objects]
 
 
 def teacher_planner(config: DistillConfig, gripper: GripperSpec | None = None, db=None) -> Planner:
@@ -161,7 +161,7 @@ def distill_scene(index: int, objects: Sequence, config: DistillConfig, scene_co
 def _check_out_dir(out_dir: str, config: DistillConfig, gripper: GripperSpec) -> None:
     """Write the set's config, or refuse a directory made with another one (its shards would not match)."""
     path = os.path.join(out_dir, CONFIG_FILE)
-    mine = {"distill": dataclasses.asdict(config), "gripper": dataclasses.asdict(gripper)}
+    mine = {"distill": dataclasses.asdict(config), "gripper": gripper_to_dict(gripper)}  # read by `label.directory_gripper`
     text = json.dumps(mine, indent=1, sort_keys=True, default=list)
     if os.path.exists(path):
         with open(path) as f:
@@ -204,3 +204,21 @@ def distill(first: int, end: int, out_dir: str | os.PathLike, config: DistillCon
 def _shard_name(first: int, end: int) -> str:
     """The shard of scenes [first, end), named as labelling names its shards."""
     return shard_base(first, end) + dataset.SHARD_SUFFIX
+
+
+def data_sensor(data: Sequence[str | os.PathLike] | str | os.PathLike) -> str | None:
+    """The sensor whose view the distillation sets among training directories `data` teach (their
+    distill.json), recorded in the student's meta as "sensor" (`sgjax.stage2.checkpoint.meta_sensor`);
+    None when none is a distillation set. ValueError when they teach different sensors."""
+    dirs = [data] if isinstance(data, (str, os.PathLike)) else list(data)
+    taught = set()
+    for directory in dirs:
+        path = os.path.join(os.fspath(directory), CONFIG_FILE)
+        if os.path.exists(path):
+            with open(path) as f:
+                taught.add(json.load(f)["distill"]["sensor"])
+    if len(taught) > 1:
+        raise ValueError(f"the distillation sets in {', '.join(map(os.fspath, dirs))} teach different sensors "
+                         f"({', '.join(sorted(taught))}): train one student per sensor")
+    return taught.pop() if taught else None
+
