@@ -614,7 +614,7 @@ def _cmd_candidates(args: argparse.Namespace) -> int:
 FRAME_OPTIONS = (("depth", "--depth"), ("intrinsics", "--intrinsics"), ("depth_scale", "--depth-scale"),
                  ("extrinsics", "--extrinsics"), ("masks", "--masks"), ("workspace_mask", "--workspace-mask"),
                  ("all_objects", "--all-objects"), ("top", "--top"))
-CLOUD_OPTIONS = (("mask", "--mask"), ("viewpoint", "--viewpoint"))
+CLOUD_OPTIONS = (("mask", "--mask"), ("viewpoint", "--viewpoint"), ("sensed", "--sensed"))
 FORMS = "a scene cloud (sgjax plan CLOUD --mask MASK.npy) or a depth image (sgjax plan --depth D --intrinsics K)"
 
 
@@ -665,7 +665,7 @@ def _plan_cloud(args: argparse.Namespace) -> int:
             )
         _prefetch_programs(args, spec, f"cloud {mask.dtype == bool}")
         db = _database(spec, args.small_db, args.db, check=args.gripper is not None)
-        planner = _planner(args, spec, db, per_object=mask.dtype == bool)
+        planner = _planner(args, spec, db, per_object=mask.dtype == bool, sensed=args.sensed)
         viewpoint = (0.0, 0.0, 0.0) if args.viewpoint is None else tuple(args.viewpoint)
         if mask.dtype == bool:
             plan = planner.plan_masked(cloud, mask, viewpoint, seed=args.seed)
@@ -1086,6 +1086,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--viewpoint", type=float, nargs=3, metavar=("X", "Y", "Z"),
                    help="the cloud form: camera position (default: origin)")
+    p.add_argument("--sensed", action="store_true", help="the cloud form: the cloud comes from a depth camera, not a "
+                   "simulator's exact render: score with the E-RNet shipped for sensed depth (the depth form always does)")
     p.add_argument("--depth", metavar="D", help="the depth form: a depth image, 16-bit PNG (see --depth-scale) or float "
                    ".npy/.npz in metres; 0 or NaN: no depth")
     p.add_argument("--intrinsics", metavar="K", help="the depth form: the camera's intrinsics, JSON {\"K\": 3x3} or "

@@ -244,6 +244,7 @@ BAD = [  # (argv with {names} of `bad`'s files, words the one line must hold)
     (["{cloud}", "--mask", "{cloud}", "--all-objects"], "--all-objects: only for a depth image"),
     (["--depth", "{depth}"], "--depth needs --intrinsics"),
     (["--depth", "{depth}", "--intrinsics", "{intrinsics}", "--mask", "{cloud}"], "--mask: only for a scene cloud"),
+    (["--depth", "{depth}", "--intrinsics", "{intrinsics}", "--sensed"], "--sensed: only for a scene cloud"),
     (["--intrinsics", "{intrinsics}"], "nothing to plan on"),
 ]
 

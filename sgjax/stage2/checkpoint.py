@@ -11,7 +11,9 @@ meta["gripper"]; `checkpoint_gripper(run_dir)` / `meta_gripper(meta)` read it ba
 the record, as the shipped defaults, counts as the default gripper), `shipped_dir` picks the shipped
 checkpoint made for a gripper (`sgjax/models/ernet_<gripper>` beside `ernet_default`), and
 `gripper_mismatch` words the warning a planner gives when it plans for another gripper than its network
-was trained for.
+was trained for. A network taught a sensor's view (distilled, `train.distill`) records the sensor as
+meta["sensor"] (`meta_sensor`; without it: exact depth), and `shipped_dir(..., sensed=True)` prefers it for
+a depth camera's clouds (`sgjax/models/ernet_realsense` for the default gripper).
 """
 
 from __future__ import annotations
