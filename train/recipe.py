@@ -63,6 +63,12 @@ class RecipeError(ValueError):
 # The recipe.
 
 
+def _scene_range(scenes: str) -> tuple[int, int]:
+    """"A:B" -> (A, B): scenes A..B-1."""
+    first, _, end = scenes.partition(":")
+    return int(first), int(end)
+
+
 @dataclasses.dataclass(frozen=True)
 class LabelSet:
     """One `sgjax label` run: `sgjax label --scenes A:B --seed S --objects O --camera C --n-objects N
@@ -80,8 +86,7 @@ class LabelSet:
     @property
     def scene_range(self) -> tuple[int, int]:
         """(first scene, end): scenes first..end-1."""
-        first, _, end = self.scenes.partition(":")
-        return int(first), int(end)
+        return _scene_range(self.scenes)
 
     def config(self, note: Callable[[str], None] | None = None, gripper=None):
         """The LabelConfig `sgjax label` builds from these options (`label_config`); gripper: a GripperSpec
@@ -123,8 +128,7 @@ class DistillSet:
     @property
     def scene_range(self) -> tuple[int, int]:
         """(first scene, end): scenes first..end-1."""
-        first, _, end = self.scenes.partition(":")
-        return int(first), int(end)
+        return _scene_range(self.scenes)
 
     def config(self):
         """The DistillConfig `sgjax distill` builds from these options (ValueError for a bad one)."""
@@ -371,19 +375,25 @@ def _check_choice(value: str, choices: tuple[str, ...], field: str, source: str)
     _check(value in choices, source, field, f"must be one of {', '.join(choices)}, got {value!r}")
 
 
-def _label_set(entry: Any, where: str, source: str, spec=None) -> LabelSet:
-    """One [[labels]] entry, checked: the CLI's own LabelConfig is built from it as the last check."""
-    from envs.sensors import SENSORS
-
-    fields = _fields(entry, _LABEL, where, source)
+def _set_fields(entry: Any, schema: Mapping[str, Any], where: str, source: str) -> dict[str, Any]:
+    """The fields every set ([[labels]], [[distill]]) shares, checked: a plain name that is not a tiny
+    run's, scenes "A:B" with A < B, a seed >= 0; then the entry's fields by `schema`."""
+    fields = _fields(entry, schema, where, source)
     _check_name(fields["name"], f"{where}.name", source)
     _check(not fields["name"].endswith(TINY_SUFFIX), source, f"{where}.name",
            f"names ending in {TINY_SUFFIX!r} are the sets of --tiny runs, got {fields['name']!r}")
     match = re.fullmatch(r"(\d+):(\d+)", fields["scenes"])
     _check(bool(match) and int(match[1]) < int(match[2]), source, f"{where}.scenes",
            f"must be A:B with A < B (scenes A..B-1), got {fields['scenes']!r}")
-    for key in ("seed",):
-        _check(fields[key] >= 0, source, f"{where}.{key}", f"must be >= 0, got {fields[key]}")
+    _check(fields["seed"] >= 0, source, f"{where}.seed", f"must be >= 0, got {fields['seed']}")
+    return fields
+
+
+def _label_set(entry: Any, where: str, source: str, spec=None) -> LabelSet:
+    """One [[labels]] entry, checked: the CLI's own LabelConfig is built from it as the last check."""
+    from envs.sensors import SENSORS
+
+    fields = _set_fields(entry, _LABEL, where, source)
     for key in ("n_objects", "targets_per_scene"):
         _check(fields[key] >= 1, source, f"{where}.{key}", f"must be >= 1, got {fields[key]}")
     _check(bool(fields["objects"]), source, f"{where}.objects", "must name an object set or a folder of meshes")
@@ -399,16 +409,9 @@ def _label_set(entry: Any, where: str, source: str, spec=None) -> LabelSet:
 
 def _distill_set(entry: Any, where: str, source: str) -> DistillSet:
     """One [[distill]] entry, checked: `sgjax distill`'s own DistillConfig is built from it as the last check."""
-    fields = _fields(entry, _DISTILL, where, source)
-    _check_name(fields["name"], f"{where}.name", source)
-    _check(not fields["name"].endswith(TINY_SUFFIX), source, f"{where}.name",
-           f"names ending in {TINY_SUFFIX!r} are the sets of --tiny runs, got {fields['name']!r}")
-    match = re.fullmatch(r"(\d+):(\d+)", fields["scenes"])
-    _check(bool(match) and int(match[1]) < int(match[2]), source, f"{where}.scenes",
-           f"must be A:B with A < B (scenes A..B-1), got {fields['scenes']!r}")
+    fields = _set_fields(entry, _DISTILL, where, source)
     _check(all(isinstance(n, int) and not isinstance(n, bool) for n in fields["n_objects"]), source,
            f"{where}.n_objects", f"must be a list of object counts, got {fields['n_objects']!r}")
-    _check(fields["seed"] >= 0, source, f"{where}.seed", f"must be >= 0, got {fields['seed']}")
     taught = DistillSet(**fields)
     try:
         taught.config()  # DistillConfig's own checks (a sensor, not exact; counts >= 1; the masks)
