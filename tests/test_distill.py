@@ -127,6 +127,21 @@ def test_a_network_trains_on_soft_labels(made, tmp_path):
     assert all(np.isfinite(losses)) and losses[-1] < losses[0]
 
 
+def test_the_judgement_of_soft_labels_without_trials(made):
+    """A held-out part of a distillation set is judged as labelled data is (the trainer's held-out
+    metrics): its samples ran no trial (outcome -1), so no top pick's outcome is counted."""
+    from train.judgement import judge
+
+    (out, _), _, _, _ = made
+    data = dataset.read_shards(str(out))
+    n = len(data["label"])
+    score = np.linspace(0.0, 1.0, n)
+    hard = np.round(data["label"])  # as the trainer's metrics take soft labels
+    result = judge(score, hard, outcome=data["outcome"], scene=data["scene_seed"], resamples=0)
+    assert (data["outcome"] == -1).all() and result["top1_outcomes"] == {}
+    assert result["top1_scenes"] == len(np.unique(data["scene_seed"])) and 0.0 <= result["auc"] <= 1.0
+
+
 def test_judge_gives_a_plans_own_scores(made):
     """`Planner.judge` on a plan's scene and seed repeats the scores the plan's Stage 2 gave its candidates."""
     _, _, objects, planner = made
