@@ -36,8 +36,6 @@ def test_the_shipped_choice_follows_the_depth_and_the_gripper():
     ag = load_gripper("ag-105-145")  # its shipped E-RNet saw stereo labels already: one for both depths
     for sensed in (False, True):
         assert checkpoint.shipped_dir(default, ag, sensed) == checkpoint.MODELS_DIR / "ernet_ag-105-145"
-    # A run directory given is used as it is, whatever the depth.
-    assert checkpoint.model_checkpoint("some/run", default, GripperSpec(), sensed=True)[0] == "some/run"
 
 
 def test_a_sensor_taught_checkpoint_only_stands_in_where_nothing_else_fits(tmp_path, monkeypatch):

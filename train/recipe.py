@@ -238,8 +238,8 @@ class Recipe:
         for the default gripper has no "gripper" entry, one without distillation sets or init none of
         those, as before recipes named them."""
         data = dataclasses.asdict(self)
-        for key, absent in (("gripper", None), ("distill", []), ("init", None)):
-            if data[key] == absent:
+        for key in ("gripper", "distill", "init"):
+            if data[key] is None or (key == "distill" and not data[key]):
                 del data[key]
         return data
 
