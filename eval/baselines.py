@@ -318,13 +318,12 @@ class GPDStage2Method(_CandidateMethod):
     name = "gpd+s2"
     generator_name = "gpd"
 
-    def __init__(self, model=None, config=None, sensed: bool = False):
+    def __init__(self, model=None, config=None):
         from sgjax.stage2 import ernet
 
         config = config or BaselineConfig()
-        network = ernet.as_model(model, config.spec, sensed)  # sensed: the E-RNet shipped for a depth camera's clouds
-        checkpoint.warn_gripper("E-RNet", model, checkpoint.ERNET_DEFAULT_DIR, config.spec, sensed=sensed)
-        self.checkpoint = checkpoint.model_checkpoint(model, checkpoint.ERNET_DEFAULT_DIR, config.spec, sensed)[0]
+        network = ernet.as_model(model, config.spec)
+        checkpoint.warn_gripper("E-RNet", model, checkpoint.ERNET_DEFAULT_DIR, config.spec)
         super().__init__(network, config, functools.partial(gpd_candidates, config=config))
 
     def _decide(self, cands: CandidateSet, scene, mask, seed: int, points=None, labels=None):

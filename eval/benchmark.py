@@ -23,10 +23,9 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from envs import sealed
-from envs import sensors as sensors_lib
 from eval import declutter, metrics, report
 from eval.declutter import DeclutterConfig
-from eval.methods import check_method, make_method, method_gripper, takes_gripper, takes_sensed
+from eval.methods import check_method, make_method, method_gripper, takes_gripper
 from eval.protocol import Method
 from sgjax.geometry.gripper_files import gripper_to_dict
 
@@ -108,11 +107,9 @@ def _describe(value) -> str:
 
 
 def run_key(method: str, options: dict, n_objects: int, assets: Sequence, config: DeclutterConfig,
-            method_config: object = None, network: str | None = None) -> dict:
+            method_config: object = None) -> dict:
     """What must match for a resumed scene log to belong to this run. method_config: the method's own
-    settings (its `config`, defaults included), so that changed defaults do not resume older logs;
-    network: the checkpoint the method scores with, keyed through a sensor (where the shipped choice
-    depends on the depth), so that a log of another network is not resumed."""
+    settings (its `config`, defaults included), so that changed defaults do not resume older logs."""
     from envs.objects import object_set_identity
 
     objects = object_set_identity("", assets)["hash"]  # the same names hash the tables show
@@ -128,15 +125,7 @@ def run_key(method: str, options: dict, n_objects: int, assets: Sequence, config
     }
     if config.view:  # through a sensor (outside the config's repr, so that exact runs keep their key)
         key["view"] = config.view
-    if network is not None:
-        key["network"] = network
     return key
-
-
-def _network(method) -> str | None:
-    """The checkpoint a method instance scores with (`Planner.checkpoint`; a baseline's `checkpoint`), or None."""
-    planner = getattr(method, "planner", None)
-    return getattr(planner, "checkpoint", None) if planner is not None else getattr(method, "checkpoint", None)
 
 
 def _check_key(path: Path, log: dict, key: dict) -> None:
@@ -229,12 +218,8 @@ def run_benchmark(
     # Built before the logs are read: its settings are part of the resume key. The gripper is not among
     # the key's options: the config's part of the key holds it (DeclutterConfig.gripper).
     if instance is None:
-        # Through a sensor's depth an E-RNet method scores with the network shipped for a depth camera's
-        # clouds (`sgjax.planner.Planner`'s `sensed`), as `sgjax plan --depth` does on a user's frame.
-        sensed = {"sensed": True} if takes_sensed(name) and not sensors_lib.get_sensor(config.sensor).is_exact else {}
-        instance = make_method(name, **options, **({"gripper": config.gripper} if takes_gripper(name) else {}), **sensed)
-    key = run_key(name, options, n, assets, config, getattr(instance, "config", None),
-                  _network(instance) if config.view else None)
+        instance = make_method(name, **options, **({"gripper": config.gripper} if takes_gripper(name) else {}))
+    key = run_key(name, options, n, assets, config, getattr(instance, "config", None))
     out = Path(out)
 
     todo, logs = [], {}

@@ -87,20 +87,17 @@ def _oracle(**options) -> Method:
 
 def _supergrasp(use_refinement: bool) -> Callable[..., Method]:
     def factory(model=None, small_db: bool = False, db=None, config=None, preset: str = "default",
-                gripper=None, sensed: bool = False) -> Method:
+                gripper=None) -> Method:
         from eval.supergrasp import PlannerMethod
 
         name = "supergrasp" if use_refinement else "supergrasp-norefine"
         return PlannerMethod(name, use_refinement, model=model, small_db=small_db, db=db, config=config, preset=preset,
-                             gripper=gripper, sensed=sensed)
+                             gripper=gripper)
 
     return factory
 
 
 _PLANNER_OPTIONS = ("model", "small_db", "db", "config", "gripper")
-# Methods whose network is E-RNet also take `sensed` (`sgjax.planner.Planner`): the E-RNet shipped for a
-# depth camera's clouds; `eval.benchmark.run_benchmark` sets it when the scene is observed through a sensor.
-_ERNET_PLANNER_OPTIONS = (*_PLANNER_OPTIONS, "sensed")
 
 
 def _supergrasp_pointnetgpd(model=None, small_db: bool = False, db=None, config=None, gripper=None) -> Method:
@@ -144,10 +141,10 @@ def _pointnetgpd(generator: str) -> Callable[..., Method]:
     return factory
 
 
-def _gpd_s2(model=None, config=None, gripper=None, sensed: bool = False) -> Method:
+def _gpd_s2(model=None, config=None, gripper=None) -> Method:
     from eval.baselines import GPDStage2Method
 
-    return GPDStage2Method(model=model, config=_for_gripper("gpd+s2", config, gripper, _baseline_config), sensed=sensed)
+    return GPDStage2Method(model=model, config=_for_gripper("gpd+s2", config, gripper, _baseline_config))
 
 
 def _cgn_config(gripper=None):
@@ -181,7 +178,7 @@ METHODS: dict[str, MethodInfo] = {
             "supergrasp",
             "SuperGrasp: Stage-1 similarity matching + E-RNet evaluation and refinement",
             _supergrasp(True),
-            _ERNET_PLANNER_OPTIONS,
+            _PLANNER_OPTIONS,
             _planner_missing,
             presets=True,
         ),
@@ -189,7 +186,7 @@ METHODS: dict[str, MethodInfo] = {
             "supergrasp-norefine",
             "SuperGrasp without the refinement branch (paper: Ours w/o RNet)",
             _supergrasp(False),
-            _ERNET_PLANNER_OPTIONS,
+            _PLANNER_OPTIONS,
             _planner_missing,
             presets=True,
         ),
@@ -232,7 +229,7 @@ METHODS: dict[str, MethodInfo] = {
             "gpd+s2",
             "GPD-style candidates + Ours (S2) (paper ablation: PointNetGPD + Ours (S2)): E-RNet and the decision policy",
             _gpd_s2,
-            ("model", "config", "gripper", "sensed"),
+            ("model", "config", "gripper"),
             _planner_missing,
         ),
         MethodInfo(
@@ -244,14 +241,6 @@ METHODS: dict[str, MethodInfo] = {
         ),
     )
 }
-
-
-def takes_sensed(name: str) -> bool:
-    """Whether method `name` ("method" or "method@preset") scores with E-RNet and takes the `sensed` option
-    (the E-RNet shipped for a depth camera's clouds), which `eval.benchmark.run_benchmark` sets when the
-    scene is observed through a sensor model."""
-    info = METHODS.get(split_preset(name)[0])
-    return info is not None and "sensed" in info.options
 
 
 def takes_gripper(name: str) -> bool:

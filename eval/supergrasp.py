@@ -31,7 +31,7 @@ class PlannerMethod:
     """A `Method` over `sgjax.planner.Planner` (with or without the refinement branch)."""
 
     def __init__(self, name: str, use_refinement: bool, model=None, small_db: bool = False, db=None, config=None,
-                 preset: str = "default", gripper=None, sensed: bool = False):
+                 preset: str = "default", gripper=None):
         from sgjax import presets
         from sgjax.geometry.gripper import GripperSpec
         from sgjax.planner import Planner
@@ -52,8 +52,7 @@ class PlannerMethod:
             db = load_database(DBConfig.for_gripper(config.spec, small_db), progress=False)
         self.config = dataclasses.replace(config, use_refinement=use_refinement)
         self.name = with_preset(name, preset)
-        # sensed: the harness observes through a sensor model: the E-RNet shipped for a depth camera's clouds.
-        self.planner = Planner(model=model, db=db, config=self.config, sensed=sensed)
+        self.planner = Planner(model=model, db=db, config=self.config)
         # Stage 1 of an object whose cloud has not changed since the scene's last plan is not run again
         # (`sgjax.stage1.memory`); the harness starts each scene with `begin_scene`.
         self.memory = Stage1Memory()

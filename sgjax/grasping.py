@@ -107,9 +107,7 @@ def plan_frame(planner: Planner, frame: Frame, all_objects: bool = False, top: i
     first only): the parted one (touching objects merged into one cluster cut apart where the finer crease
     test finds them), then, while a plan finds no grasp, the clusters as segmented, the joined one
     (crease-cut fragments joined to their neighbour), the finer one (a pile cut into its objects), as the
-    benchmark's harness does; FramePlan.frame says which labels the grasps refer to. A real camera's frame
-    is best planned with `Planner(sensed=True)`: the E-RNet shipped for sensed depth, as `sgjax plan --depth`
-    loads it."""
+    benchmark's harness does; FramePlan.frame says which labels the grasps refer to."""
     if top < 1:
         raise ValueError(f"top must be >= 1, got {top}")
     hypotheses = frame.hypotheses()

@@ -395,10 +395,7 @@ class Planner:
         `ernet.load_default_model`);
         a PointNetGPD instead: the network ablation (`sgjax.stage2.scorers`; needs use_refinement=False);
     db: a PrimitiveDB, or None (the default database from the cache, built on first use);
-    config: a `PlannerConfig` (named ones: `sgjax.presets`);
-    sensed: the clouds come from a depth camera (a `sgjax.perception.Frame`), not a simulator's exact
-        render: with model None the shipped E-RNet taught a sensor's view for the gripper, where one is
-        shipped (`sgjax/models/ernet_realsense` for the default gripper), else the exact-depth one.
+    config: a `PlannerConfig` (named ones: `sgjax.presets`).
 
     `checkpoint` names the network's checkpoint ("sgjax/models/ernet_default", the run directory, "an
     in-memory model", or for `scorers.Stage1Order` "none (Stage 1's order)") and `checkpoint_gripper` the
@@ -406,18 +403,17 @@ class Planner:
     planner warns once, when it is built (`checkpoint.gripper_mismatch`).
     """
 
-    def __init__(self, model=None, db: PrimitiveDB | None = None, config: PlannerConfig = PlannerConfig(),
-                 sensed: bool = False):
+    def __init__(self, model=None, db: PrimitiveDB | None = None, config: PlannerConfig = PlannerConfig()):
         enable_compilation_cache()  # a new process loads what an earlier one compiled
         # PointNetGPD in E-RNet's place is the network ablation (`scorers`): it has no refinement head.
         other_scorer = isinstance(model, (pointnetgpd.PointNetGPD, scorers.Stage1Order))
-        self.model = model if other_scorer else ernet.as_model(model, config.spec, sensed)
+        self.model = model if other_scorer else ernet.as_model(model, config.spec)
         self.config = config
         if isinstance(self.model, scorers.Stage1Order):  # no network, so no checkpoint and no gripper to check
             self.checkpoint, self.checkpoint_gripper = scorers.STAGE1_ORDER, None
         else:
             self.checkpoint, self.checkpoint_gripper = checkpoint.model_checkpoint(
-                model, checkpoint.ERNET_DEFAULT_DIR, config.spec, sensed and not other_scorer)
+                model, checkpoint.ERNET_DEFAULT_DIR, config.spec)
             network = "E-RNet" if isinstance(self.model, ernet.ERNet) else type(self.model).__name__
             checkpoint.warn_mismatch(network, self.checkpoint, self.checkpoint_gripper, config.spec)
         self._scorer = scorers.scorer_for(self.model)

@@ -335,11 +335,7 @@ def _train_options(args: argparse.Namespace) -> int:
             model={"paper": network.paper, "light": network.light, "tiny": network.tiny}[args.model](**hand),
             spec=spec,
         )
-        from train.distill import data_sensor
-
-        sensor = data_sensor(args.data)  # a student of distillation sets records the sensor it was taught
-        result = run(args.data, args.out, config, progress=not args.quiet, init=args.init,  # one directory or several
-                     extra_meta=None if sensor is None else {"sensor": sensor})
+        result = run(args.data, args.out, config, progress=not args.quiet, init=args.init)  # one directory or several
     except (dataset.DatasetError, ValueError) as exc:
         return _fail(str(exc))
     except KeyboardInterrupt:
@@ -614,7 +610,7 @@ def _cmd_candidates(args: argparse.Namespace) -> int:
 FRAME_OPTIONS = (("depth", "--depth"), ("intrinsics", "--intrinsics"), ("depth_scale", "--depth-scale"),
                  ("extrinsics", "--extrinsics"), ("masks", "--masks"), ("workspace_mask", "--workspace-mask"),
                  ("all_objects", "--all-objects"), ("top", "--top"))
-CLOUD_OPTIONS = (("mask", "--mask"), ("viewpoint", "--viewpoint"), ("sensed", "--sensed"))
+CLOUD_OPTIONS = (("mask", "--mask"), ("viewpoint", "--viewpoint"))
 FORMS = "a scene cloud (sgjax plan CLOUD --mask MASK.npy) or a depth image (sgjax plan --depth D --intrinsics K)"
 
 
@@ -665,7 +661,7 @@ def _plan_cloud(args: argparse.Namespace) -> int:
             )
         _prefetch_programs(args, spec, f"cloud {mask.dtype == bool}")
         db = _database(spec, args.small_db, args.db, check=args.gripper is not None)
-        planner = _planner(args, spec, db, per_object=mask.dtype == bool, sensed=args.sensed)
+        planner = _planner(args, spec, db, per_object=mask.dtype == bool)
         viewpoint = (0.0, 0.0, 0.0) if args.viewpoint is None else tuple(args.viewpoint)
         if mask.dtype == bool:
             plan = planner.plan_masked(cloud, mask, viewpoint, seed=args.seed)
@@ -729,11 +725,11 @@ ONE_FRAME_STAGE1_SIZES = (4,)  # `sgjax plan`'s Stage-1 batch size (`PlannerConf
 ONE_FRAME_STAGE2_SLOTS = 128  # and its smallest Stage-2 batch (`PlannerConfig.stage2_min_slots`)
 
 
-def _planner(args: argparse.Namespace, spec, db, per_object: bool, sensed: bool = False):
+def _planner(args: argparse.Namespace, spec, db, per_object: bool):
     """The planner of `sgjax plan`: --preset for --gripper's spec, with --model's E-RNet (None: the one
-    shipped for the gripper and, sensed, for a depth camera's clouds) or, for `--model none`, no network
-    (Stage 1's order, no refinement). A checkpoint trained for another gripper is warned about in one
-    line. per_object: the process plans one object at a time (a target mask, --all-objects), not whole scenes."""
+    shipped for the gripper) or, for `--model none`, no network (Stage 1's order, no refinement). A
+    checkpoint trained for another gripper is warned about in one line. per_object: the process plans
+    one object at a time (a target mask, --all-objects), not whole scenes."""
     import dataclasses
 
     from sgjax import presets
@@ -751,7 +747,7 @@ def _planner(args: argparse.Namespace, spec, db, per_object: bool, sensed: bool 
     if args.model == NO_NETWORK:
         return stage1_order_planner(db, config)
     with _warnings_as_notes():  # the checkpoint trained for another gripper: one line
-        return Planner(model=args.model, db=db, config=config, sensed=sensed)
+        return Planner(model=args.model, db=db, config=config)
 
 
 def _prefetch_programs(args: argparse.Namespace, spec, form: str) -> None:
@@ -827,7 +823,7 @@ def _plan_frame(args: argparse.Namespace) -> int:
 
     try:
         db = _database(spec, args.small_db, args.db, check=args.gripper is not None)
-        planner = _planner(args, spec, db, per_object=args.all_objects, sensed=True)  # a depth camera's frame
+        planner = _planner(args, spec, db, per_object=args.all_objects)
         setup_s = time.perf_counter() - start - perception_s
         result = plan_frame(planner, frame, all_objects=args.all_objects, top=top, seed=args.seed)
     except (ValueError, FileNotFoundError) as exc:
@@ -1086,8 +1082,6 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--viewpoint", type=float, nargs=3, metavar=("X", "Y", "Z"),
                    help="the cloud form: camera position (default: origin)")
-    p.add_argument("--sensed", action="store_true", help="the cloud form: the cloud comes from a depth camera, not a "
-                   "simulator's exact render: score with the E-RNet shipped for sensed depth (the depth form always does)")
     p.add_argument("--depth", metavar="D", help="the depth form: a depth image, 16-bit PNG (see --depth-scale) or float "
                    ".npy/.npz in metres; 0 or NaN: no depth")
     p.add_argument("--intrinsics", metavar="K", help="the depth form: the camera's intrinsics, JSON {\"K\": 3x3} or "

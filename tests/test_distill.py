@@ -142,6 +142,25 @@ def test_the_judgement_of_soft_labels_without_trials(made):
     assert result["top1_scenes"] == len(np.unique(data["scene_seed"])) and 0.0 <= result["auc"] <= 1.0
 
 
+def test_a_set_records_its_gripper_and_its_scenes_are_labellings(tmp_path):
+    """A distillation set's directory names its gripper as a labelled one does (`sgjax train` trains for
+    it), and its scenes are the ones `sgjax label` makes of the same options: the seen set's held-out
+    objects left out, none for another set."""
+    from sgjax.geometry.gripper import GripperSpec
+    from sgjax.geometry.gripper_files import load_gripper
+    from train import distill as distill_mod
+    from train.label import data_gripper, label_config
+
+    robotiq = load_gripper("robotiq-2f85")
+    for name, spec in (("r", robotiq), ("d", GripperSpec())):
+        (tmp_path / name).mkdir()
+        distill_mod._check_out_dir(str(tmp_path / name), CONFIG, spec)
+    assert data_gripper(str(tmp_path / "r")) == robotiq and data_gripper(str(tmp_path / "d")) == GripperSpec()
+    seen = DistillConfig(n_objects=(10, 20))
+    assert seen.scenes() == [label_config(objects="seen", seed=7, n_objects=n) for n in (10, 20)]
+    assert seen.scenes()[0].held_out_objects and CONFIG.scenes()[0].held_out_objects == ()
+
+
 def test_judge_gives_a_plans_own_scores(made):
     """`Planner.judge` on a plan's scene and seed repeats the scores the plan's Stage 2 gave its candidates."""
     _, _, objects, planner = made

@@ -96,8 +96,7 @@ def test_plan_depth_in_camera_and_world_frames(frame_dir, capsys):
         assert len(doc["grasps"]) == 1 and doc["grasps"][0]["kind"] in ("evaluated", "refined") and not doc["reasons"]
         assert_grasps_on_their_objects(doc, frame)
         assert {"perception_s", "plan_s", "stage1_s", "stage2_s", "total_s", "compiled"} <= set(doc["timing"])
-        # The E-RNet shipped for the default gripper and a depth camera's clouds (a frame's depth is sensed).
-        assert doc["checkpoint"] == "sgjax/models/ernet_realsense"
+        assert doc["checkpoint"] == "sgjax/models/ernet_default"  # the E-RNet shipped for the default gripper
     # The same grasp, once in the camera's coordinates and once in the world's.
     T = np.array(json.loads((frame_dir / "extrinsics.json").read_text())["T"])
     (c,), (w,) = camera["grasps"], world["grasps"]
@@ -117,7 +116,7 @@ def test_plan_depth_in_camera_and_world_frames(frame_dir, capsys):
     assert main(["plan", *base, "--small-db"]) == 0
     out = capsys.readouterr().out
     assert "camera frame" in out and f"object {c['object']}:" in out and "center" in out and "timing" in out
-    assert "E-RNet checkpoint: sgjax/models/ernet_realsense" in out
+    assert "E-RNet checkpoint: sgjax/models/ernet_default" in out
 
     # As its own process, as the `sgjax` command runs: the programs the plans above called load on a
     # second thread (`exported.prefetch`) and the process ends without Python's teardown (`_end_process`):
@@ -244,7 +243,6 @@ BAD = [  # (argv with {names} of `bad`'s files, words the one line must hold)
     (["{cloud}", "--mask", "{cloud}", "--all-objects"], "--all-objects: only for a depth image"),
     (["--depth", "{depth}"], "--depth needs --intrinsics"),
     (["--depth", "{depth}", "--intrinsics", "{intrinsics}", "--mask", "{cloud}"], "--mask: only for a scene cloud"),
-    (["--depth", "{depth}", "--intrinsics", "{intrinsics}", "--sensed"], "--sensed: only for a scene cloud"),
     (["--intrinsics", "{intrinsics}"], "nothing to plan on"),
 ]
 

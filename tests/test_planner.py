@@ -544,11 +544,6 @@ def test_cli_plan(tmp_path, capsys, monkeypatch, small_db):
     assert main(["plan", *no_network, "--mask", str(tmp_path / "labels.npy"), "--json"]) == 0
     record = json.loads(capsys.readouterr().out)
     assert record["checkpoint"] == "none (Stage 1's order)" and record["kind"] == "evaluated" and record["score"] == 1.0
-    # Without --model the shipped E-RNet: for exact depth, or with --sensed the one taught a sensor's view.
-    shipped = [a for a in base if a not in ("--model", str(run))]
-    for extra, name in (([], "ernet_default"), (["--sensed"], "ernet_realsense")):
-        assert main(["plan", *shipped, *extra, "--mask", str(tmp_path / "labels.npy"), "--json"]) == 0
-        assert json.loads(capsys.readouterr().out)["checkpoint"] == f"sgjax/models/{name}"
     with pytest.raises(SystemExit):  # argparse names the known presets
         main(["plan", *base, "--mask", str(tmp_path / "mask.npy"), "--preset", "nope"])
     assert "invalid choice: 'nope'" in capsys.readouterr().err

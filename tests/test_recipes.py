@@ -12,10 +12,7 @@ import subprocess
 import tomllib
 from pathlib import Path
 
-import jax
-import numpy as np
 import pytest
-from flax import nnx
 
 from sgjax.stage1.database import DBConfig, default_path, save_database
 from sgjax.stage2 import checkpoint, ernet, pointnetgpd
@@ -43,7 +40,7 @@ def test_every_shipped_recipe_loads_and_validates(name):
     path = recipes.recipe_path(name)
     assert recipe.name == name == path.stem  # `--recipe NAME` finds the file of that name
     assert recipe.sha256 == hashlib.sha256(path.read_bytes()).hexdigest()
-    assert recipe.cpu_hours > 0 and (recipe.labels or recipe.distill) and recipe.train.epochs >= 1
+    assert recipe.cpu_hours > 0 and recipe.labels and recipe.train.epochs >= 1
     assert recipes.load_recipe(path) == recipe  # by path too
     json.dumps(recipe.to_dict())  # what the checkpoints' meta holds
     recipe.train.config(recipe.network)  # a valid TrainConfig
@@ -134,48 +131,6 @@ def test_a_bad_field_gives_one_line_naming_it(field, value, named):
     assert "\n" not in message and message.startswith(f"bad.toml: {named}: "), message
 
 
-BAD_DISTILL = [
-    # A recipe of distillation sets (ernet_realsense): (field, value (... deletes it), the field named)
-    ("init", "no_such_model", "init"),
-    ("init", "../ernet_default", "init"),
-    ("distill.0.camera", "exact", "distill[0]"),  # DistillConfig's own check: a sensor's view
-    ("distill.0.camera", ..., "distill[0].camera"),
-    ("distill.0.masks", "sam", "distill[0]"),
-    ("distill.0.n_objects", [], "distill[0]"),
-    ("distill.0.n_objects", [10, "20"], "distill[0].n_objects"),
-    ("distill.0.n_objects", 10, "distill[0].n_objects"),
-    ("distill.0.per_scene", 0, "distill[0]"),
-    ("distill.0.scenes", "600:0", "distill[0].scenes"),
-    ("distill.0.name", "x-tiny", "distill[0].name"),
-    ("distill.0.teacher", "run", "distill[0].teacher"),
-    ("distill", [], "labels"),  # then nothing to train on
-    ("network", "pointnetgpd", "distill"),
-]
-
-
-@pytest.mark.parametrize(("field", "value", "named"), BAD_DISTILL, ids=[f"{f}={v!r}" for f, v, _ in BAD_DISTILL])
-def test_a_bad_distillation_field_gives_one_line_naming_it(field, value, named):
-    with pytest.raises(recipes.RecipeError) as info:
-        recipes.parse_recipe(_set(_data("ernet_realsense"), field, value), "bad.toml")
-    message = str(info.value)
-    assert "\n" not in message and message.startswith(f"bad.toml: {named}: "), message
-
-
-def test_distillation_sets_teach_one_sensor_to_an_ernet():
-    data = _data("ernet_realsense")
-    twice = [data["distill"][0], {**data["distill"][0], "name": "kinect-r1", "camera": "kinect"}]
-    with pytest.raises(recipes.RecipeError, match=r"^r\.toml: distill: teaches one sensor's view"):
-        recipes.parse_recipe({**data, "distill": twice}, "r.toml")
-    with pytest.raises(recipes.RecipeError, match=r"^r\.toml: distill: names each set once"):
-        recipes.parse_recipe({**data, "distill": [data["distill"][0]] * 2}, "r.toml")
-    recipe = recipes.parse_recipe(data, "r.toml")
-    assert recipe.sensor() == "realsense" and recipes.parse_recipe(_data(), "r.toml").sensor() == "exact"
-    # The set is the one `sgjax distill`'s defaults make: a set started by hand is resumed by the recipe.
-    from train.distill import DistillConfig
-
-    assert recipe.distill[0].config() == DistillConfig(n_objects=(10, 20))
-
-
 def test_pointnetgpd_takes_no_hand_points():
     with pytest.raises(recipes.RecipeError, match=r"^x\.toml: train\.hand_points: an E-RNet input"):
         recipes.parse_recipe(_set(_data("pointnetgpd_default"), "train.hand_points", 32), "x.toml")
@@ -230,8 +185,7 @@ def tiny_runs(small_db, tmp_path_factory):
 def test_tiny_run_makes_a_loadable_checkpoint_recording_recipe_and_commit(tiny_runs, name):
     cache, runs = tiny_runs
     recipe, first, _, _ = runs[name]
-    assert first.label_dirs == [str(cache / "labels" / (s.name + "-tiny")) for s in recipe.labels] + \
-        [str(cache / "distill" / (s.name + "-tiny")) for s in recipe.distill]
+    assert first.label_dirs == [str(cache / "labels" / (s.name + "-tiny")) for s in recipe.labels]
     assert Path(first.checkpoint) == cache / "runs" / name / "checkpoints" / "1"
     assert first.train.history[0]["train"]["samples"] > 0  # it labelled and trained on something
     model, meta = LOADERS[recipe.network](first.run_dir)
@@ -248,15 +202,6 @@ def test_tiny_run_makes_a_loadable_checkpoint_recording_recipe_and_commit(tiny_r
     # The recipe's gripper (the default one where it names none) labelled the set and trained the model.
     assert checkpoint.meta_gripper(meta) == recipe.spec() == label.data_gripper(first.label_dirs)
     assert ("gripper" in meta["recipe"]) == (recipe.gripper is not None)
-    # A student of distillation sets records the sensor it was taught; the others count as exact depth.
-    assert checkpoint.meta_sensor(meta) == recipe.sensor() and ("sensor" in meta) == bool(recipe.distill)
-    if recipe.init is not None:  # started from the shipped checkpoint: its weights moved, not replaced
-        start, _ = LOADERS[recipe.network](recipe.init_dir())
-        before = jax.tree_util.tree_leaves(nnx.state(start, nnx.Param))
-        after = jax.tree_util.tree_leaves(nnx.state(model, nnx.Param))
-        assert len(before) == len(after)
-        gaps = [float(np.max(np.abs(np.asarray(a) - np.asarray(b)))) for a, b in zip(before, after)]
-        assert 0 < max(gaps) < 0.1  # one tiny epoch at the recipe's learning rate: a nudge, not a new network
 
 
 @pytest.mark.parametrize("name", SHIPPED)
@@ -305,8 +250,7 @@ def test_recipe_usage_errors(tmp_path, capsys):
     listing = capsys.readouterr().out
     for name in SHIPPED:
         recipe = recipes.load_recipe(name)
-        first = (recipe.labels or recipe.distill)[0]
-        assert name in listing and recipe.network in listing and f"{first.name} scenes {first.scenes}" in listing
+        assert name in listing and recipe.network in listing and f"scenes {recipe.labels[0].scenes}" in listing
         assert f"{recipe.train.epochs} epochs" in listing
 
 
@@ -319,7 +263,7 @@ def test_ship_lines_copy_the_last_epoch_without_optimiser_state(tiny_runs):
 
 
 # The shipped checkpoints, each rebuilt from its recipe.
-REBUILT = ["ernet_default", "pointnetgpd_default", "ernet_ag-105-145", "ernet_robotiq-2f85", "ernet_realsense"]
+REBUILT = ["ernet_default", "pointnetgpd_default", "ernet_ag-105-145", "ernet_robotiq-2f85"]
 
 
 @pytest.mark.parametrize("name", REBUILT)

@@ -9,7 +9,7 @@ end (`envs.sensors.front_end`, the planner's first hypothesis), the planner's ca
 and the neighbours' fits, every object; `per_scene` of them at random) plus `perturbed` copies (the
 robust choice judges perturbed poses too), and the teacher's P(success) and refinements' P(success) of
 each on the exact render's Stage-2 cloud of the same state (`Planner.judge`). No grasp is simulated:
-about a second a scene on 2 cores.
+1-2 s a scene on 2 cores (600 scenes: 20 min).
 
 Shards are label shards (`train.dataset`, 4 scenes each, written atomically; a rerun skips the written
 ones) with soft labels and two clouds a scene, the sensor's Stage-2 cloud and the exact render's: each
@@ -204,21 +204,3 @@ def distill(first: int, end: int, out_dir: str | os.PathLike, config: DistillCon
 def _shard_name(first: int, end: int) -> str:
     """The shard of scenes [first, end), named as labelling names its shards."""
     return shard_base(first, end) + dataset.SHARD_SUFFIX
-
-
-def data_sensor(data: Sequence[str | os.PathLike] | str | os.PathLike) -> str | None:
-    """The sensor whose view the distillation sets among training directories `data` teach (their
-    distill.json), recorded in the student's meta as "sensor" (`sgjax.stage2.checkpoint.meta_sensor`);
-    None when none is a distillation set. ValueError when they teach different sensors."""
-    dirs = [data] if isinstance(data, (str, os.PathLike)) else list(data)
-    taught = set()
-    for directory in dirs:
-        path = os.path.join(os.fspath(directory), CONFIG_FILE)
-        if os.path.exists(path):
-            with open(path) as f:
-                taught.add(json.load(f)["distill"]["sensor"])
-    if len(taught) > 1:
-        raise ValueError(f"the distillation sets in {', '.join(map(os.fspath, dirs))} teach different sensors "
-                         f"({', '.join(sorted(taught))}): train one student per sensor")
-    return taught.pop() if taught else None
-

@@ -3,26 +3,21 @@
 A recipe (train/recipes/NAME.toml, package data) names the label sets a network is trained on and the
 training settings:
 
-    name, network ("ernet" | "pointnetgpd"), description, cpu_hours (an estimate of the CPU cost),
-    init (optional: a shipped checkpoint, sgjax/models/<init>, whose weights start the training)
+    name, network ("ernet" | "pointnetgpd"), description, cpu_hours (an estimate of the CPU cost)
     [[labels]]  name, scenes "A:B", seed, objects, camera, n_objects, targets_per_scene, per_source
                 (one `sgjax label` run each, into $SGJAX_CACHE/labels/<name>)
-    [[distill]] name, scenes "A:B", camera, masks, n_objects (a list), per_scene, seed, objects
-                (one `sgjax distill` run each, into $SGJAX_CACHE/distill/<name>; the teacher is the
-                gripper's shipped E-RNet for exact depth)
     [train]     model (light | paper | tiny), hand_points (E-RNet only, default 0), epochs,
                 lr_decay_epochs, batch_size, lr, weight_decay, held_out_fraction, seed
 
 `run_recipe` labels (or resumes labelling) each set through `train.label.label`, with the LabelConfig
 that `sgjax label` builds from the same options (`label_config`, shared with the CLI, so that a set
-started by hand is resumed, not refused), distils each distillation set (`train.distill.distill`, with
-the DistillConfig `sgjax distill` builds), then trains with `train.trainer.train` or
+started by hand is resumed, not refused), then trains with `train.trainer.train` or
 `train.train_pointnetgpd.train` into a run directory; both steps resume where they stopped. Every
 checkpoint's meta records the recipe (with its file's sha256) and the code's git commit.
 
 `tiny=True` runs the same recipe at test size: 2 scenes per set, 1 grasp per source and target, the
-tiny object set and the small primitive database, the tiny network (the init's own size when the recipe
-starts from a checkpoint), 1 epoch, into sets named `<name>-tiny` (never mixed with the real ones).
+tiny object set and the small primitive database, the tiny network, 1 epoch, into label sets named
+`<name>-tiny` (never mixed with the real ones).
 """
 
 from __future__ import annotations
@@ -48,7 +43,6 @@ TINY_SCENES = 2
 TINY_OBJECTS = "tiny"  # envs.objects' generated set: no download, prepared in under a second
 TINY_N_OBJECTS = 3
 TINY_BATCH = 32
-TINY_PER_SCENE = 8  # candidates a scene of a tiny distillation set
 _SAFE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")  # names become directories
 
 
@@ -61,12 +55,6 @@ class RecipeError(ValueError):
 
 # ---------------------------------------------------------------------------------------------
 # The recipe.
-
-
-def _scene_range(scenes: str) -> tuple[int, int]:
-    """"A:B" -> (A, B): scenes A..B-1."""
-    first, _, end = scenes.partition(":")
-    return int(first), int(end)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -86,7 +74,8 @@ class LabelSet:
     @property
     def scene_range(self) -> tuple[int, int]:
         """(first scene, end): scenes first..end-1."""
-        return _scene_range(self.scenes)
+        first, _, end = self.scenes.partition(":")
+        return int(first), int(end)
 
     def config(self, note: Callable[[str], None] | None = None, gripper=None):
         """The LabelConfig `sgjax label` builds from these options (`label_config`); gripper: a GripperSpec
@@ -108,41 +97,6 @@ class LabelSet:
             n_objects=min(self.n_objects, TINY_N_OBJECTS),
             targets_per_scene=1,
             per_source=",".join(f"{name}={min(count, 1)}" for name, count in counts),
-        )
-
-
-@dataclasses.dataclass(frozen=True)
-class DistillSet:
-    """One `sgjax distill` run: `sgjax distill --scenes A:B --camera C --masks M --n-objects N,... --per-scene P
-    --seed S --objects O --out $SGJAX_CACHE/distill/<name>` (the teacher: the gripper's shipped E-RNet)."""
-
-    name: str
-    scenes: str  # "A:B": scenes A..B-1
-    camera: str  # the sensor whose crops the student sees (not "exact")
-    masks: str  # "clusters" | "truth"
-    n_objects: list  # objects per scene, in turn
-    per_scene: int
-    seed: int
-    objects: str
-
-    @property
-    def scene_range(self) -> tuple[int, int]:
-        """(first scene, end): scenes first..end-1."""
-        return _scene_range(self.scenes)
-
-    def config(self):
-        """The DistillConfig `sgjax distill` builds from these options (ValueError for a bad one)."""
-        from train.distill import DistillConfig
-
-        return DistillConfig(sensor=self.camera, masks=self.masks, n_objects=tuple(self.n_objects),
-                             per_scene=self.per_scene, seed=self.seed, objects=self.objects)
-
-    def tiny(self) -> DistillSet:
-        """This set at test size: its first 2 scenes of the tiny objects, a few candidates each."""
-        first, _ = self.scene_range
-        return dataclasses.replace(
-            self, name=self.name + TINY_SUFFIX, scenes=f"{first}:{first + TINY_SCENES}", objects=TINY_OBJECTS,
-            n_objects=[min(n, TINY_N_OBJECTS) for n in self.n_objects], per_scene=min(self.per_scene, TINY_PER_SCENE),
         )
 
 
@@ -173,11 +127,10 @@ class TrainSettings:
             model=_network_config(network, self.model, self.hand_points, spec.num_refinements), spec=spec,
         )
 
-    def tiny(self, keep_model: bool = False) -> TrainSettings:
-        """These settings at test size: the tiny network (keep_model: this size, for a run started from a
-        checkpoint of it), 1 epoch, small batches."""
+    def tiny(self) -> TrainSettings:
+        """These settings at test size: the tiny network, 1 epoch, small batches."""
         return dataclasses.replace(
-            self, model=self.model if keep_model else "tiny", epochs=1, lr_decay_epochs=min(self.lr_decay_epochs, 1),
+            self, model="tiny", epochs=1, lr_decay_epochs=min(self.lr_decay_epochs, 1),
             batch_size=min(self.batch_size, TINY_BATCH),
         )
 
@@ -207,24 +160,10 @@ class Recipe:
     path: str = ""
     sha256: str = ""
     gripper: str | None = None  # a preset name or gripper file (`sgjax --gripper`); None: the default gripper
-    distill: tuple[DistillSet, ...] = ()
-    init: str | None = None  # a shipped checkpoint's name (sgjax/models/<init>) that starts the training
 
     def tiny(self) -> Recipe:
-        """The same recipe at test size (`LabelSet.tiny`, `DistillSet.tiny`, `TrainSettings.tiny`)."""
-        return dataclasses.replace(self, labels=tuple(s.tiny() for s in self.labels),
-                                   distill=tuple(s.tiny() for s in self.distill),
-                                   train=self.train.tiny(keep_model=self.init is not None))
-
-    def init_dir(self) -> Path | None:
-        """The shipped checkpoint that starts the training (None: from scratch)."""
-        from sgjax.stage2.checkpoint import MODELS_DIR
-
-        return None if self.init is None else MODELS_DIR / self.init
-
-    def sensor(self) -> str:
-        """The depth the network is taught for: the distillation sets' sensor, else "exact"."""
-        return self.distill[0].camera if self.distill else "exact"
+        """The same recipe at test size (`LabelSet.tiny`, `TrainSettings.tiny`)."""
+        return dataclasses.replace(self, labels=tuple(s.tiny() for s in self.labels), train=self.train.tiny())
 
     def spec(self):
         """The recipe's GripperSpec (`load_gripper(gripper)`; the default one without a gripper)."""
@@ -235,12 +174,10 @@ class Recipe:
 
     def to_dict(self) -> dict[str, Any]:
         """The recipe as JSON-ready data (what a checkpoint's meta["recipe"] holds, with "tiny"). A recipe
-        for the default gripper has no "gripper" entry, one without distillation sets or init none of
-        those, as before recipes named them."""
+        for the default gripper has no "gripper" entry, as before recipes named one."""
         data = dataclasses.asdict(self)
-        for key in ("gripper", "distill", "init"):
-            if data[key] is None or (key == "distill" and not data[key]):
-                del data[key]
+        if data["gripper"] is None:
+            del data["gripper"]
         return data
 
 
@@ -248,14 +185,11 @@ class Recipe:
 # Reading and checking recipe files.
 
 _TOP = {"name": str, "network": str, "description": str, "cpu_hours": float, "labels": list, "train": dict,
-        "gripper": str, "distill": list, "init": str}
+        "gripper": str}
 _LABEL = {f.name: f.type for f in dataclasses.fields(LabelSet)}
-_DISTILL = {f.name: f.type for f in dataclasses.fields(DistillSet)}
 _TRAIN = {f.name: f.type for f in dataclasses.fields(TrainSettings)}
-# Keys that may be left out: PointNetGPD has no hand input; the default gripper; recipes of labels alone,
-# trained from scratch.
-_OPTIONAL = {"hand_points", "gripper", "distill", "init"}
-_TYPES = {"str": str, "int": int, "float": float, "list": list}
+_OPTIONAL = {"hand_points", "gripper"}  # keys that may be left out (PointNetGPD has no hand input; the default gripper)
+_TYPES = {"str": str, "int": int, "float": float}
 
 
 def recipes_dir() -> Path:
@@ -304,9 +238,8 @@ def parse_recipe(data: Mapping[str, Any], source: str = "recipe") -> Recipe:
     _check_name(top["name"], "name", source)
     _check_choice(top["network"], NETWORKS, "network", source)
     _check(top["cpu_hours"] > 0, source, "cpu_hours", f"must be > 0 (hours), got {top['cpu_hours']}")
-    distill_sets = top.get("distill", [])
-    if not top["labels"] and not distill_sets:
-        raise RecipeError(source, "labels", "needs at least one [[labels]] or [[distill]] set")
+    if not top["labels"]:
+        raise RecipeError(source, "labels", "needs at least one [[labels]] set")
     gripper = top.get("gripper")
     spec = None
     if gripper is not None:
@@ -319,22 +252,8 @@ def parse_recipe(data: Mapping[str, Any], source: str = "recipe") -> Recipe:
     sets = tuple(_label_set(entry, f"labels[{i}]", source, spec) for i, entry in enumerate(top["labels"]))
     names = [s.name for s in sets]
     _check(len(set(names)) == len(names), source, "labels", f"names each set once, got {names}")
-    taught = tuple(_distill_set(entry, f"distill[{i}]", source) for i, entry in enumerate(distill_sets))
-    _check(top["network"] == "ernet" or not taught, source, "distill", "distillation teaches an E-RNet")
-    _check(len({s.name for s in taught}) == len(taught), source, "distill",
-           f"names each set once, got {[s.name for s in taught]}")
-    _check(len({s.camera for s in taught}) <= 1, source, "distill",
-           f"teaches one sensor's view, got {sorted({s.camera for s in taught})}")
-    init = top.get("init")
-    if init is not None:
-        from sgjax.stage2.checkpoint import CHECKPOINT_DIR, MODELS_DIR
-
-        _check_name(init, "init", source)
-        _check((MODELS_DIR / init / CHECKPOINT_DIR).is_dir(), source, "init",
-               f"no shipped checkpoint sgjax/models/{init}")
     settings = _train_settings(top["train"], top["network"], source)
-    return Recipe(top["name"], top["network"], top["description"], top["cpu_hours"], sets, settings, gripper=gripper,
-                  distill=taught, init=init)
+    return Recipe(top["name"], top["network"], top["description"], top["cpu_hours"], sets, settings, gripper=gripper)
 
 
 def _fields(table: Any, schema: Mapping[str, Any], where: str, source: str) -> dict[str, Any]:
@@ -375,25 +294,19 @@ def _check_choice(value: str, choices: tuple[str, ...], field: str, source: str)
     _check(value in choices, source, field, f"must be one of {', '.join(choices)}, got {value!r}")
 
 
-def _set_fields(entry: Any, schema: Mapping[str, Any], where: str, source: str) -> dict[str, Any]:
-    """The fields every set ([[labels]], [[distill]]) shares, checked: a plain name that is not a tiny
-    run's, scenes "A:B" with A < B, a seed >= 0; then the entry's fields by `schema`."""
-    fields = _fields(entry, schema, where, source)
+def _label_set(entry: Any, where: str, source: str, spec=None) -> LabelSet:
+    """One [[labels]] entry, checked: the CLI's own LabelConfig is built from it as the last check."""
+    from envs.sensors import SENSORS
+
+    fields = _fields(entry, _LABEL, where, source)
     _check_name(fields["name"], f"{where}.name", source)
     _check(not fields["name"].endswith(TINY_SUFFIX), source, f"{where}.name",
            f"names ending in {TINY_SUFFIX!r} are the sets of --tiny runs, got {fields['name']!r}")
     match = re.fullmatch(r"(\d+):(\d+)", fields["scenes"])
     _check(bool(match) and int(match[1]) < int(match[2]), source, f"{where}.scenes",
            f"must be A:B with A < B (scenes A..B-1), got {fields['scenes']!r}")
-    _check(fields["seed"] >= 0, source, f"{where}.seed", f"must be >= 0, got {fields['seed']}")
-    return fields
-
-
-def _label_set(entry: Any, where: str, source: str, spec=None) -> LabelSet:
-    """One [[labels]] entry, checked: the CLI's own LabelConfig is built from it as the last check."""
-    from envs.sensors import SENSORS
-
-    fields = _set_fields(entry, _LABEL, where, source)
+    for key in ("seed",):
+        _check(fields[key] >= 0, source, f"{where}.{key}", f"must be >= 0, got {fields[key]}")
     for key in ("n_objects", "targets_per_scene"):
         _check(fields[key] >= 1, source, f"{where}.{key}", f"must be >= 1, got {fields[key]}")
     _check(bool(fields["objects"]), source, f"{where}.objects", "must name an object set or a folder of meshes")
@@ -405,19 +318,6 @@ def _label_set(entry: Any, where: str, source: str, spec=None) -> LabelSet:
     except ValueError as exc:
         raise RecipeError(source, where, str(exc)) from None
     return labels
-
-
-def _distill_set(entry: Any, where: str, source: str) -> DistillSet:
-    """One [[distill]] entry, checked: `sgjax distill`'s own DistillConfig is built from it as the last check."""
-    fields = _set_fields(entry, _DISTILL, where, source)
-    _check(all(isinstance(n, int) and not isinstance(n, bool) for n in fields["n_objects"]), source,
-           f"{where}.n_objects", f"must be a list of object counts, got {fields['n_objects']!r}")
-    taught = DistillSet(**fields)
-    try:
-        taught.config()  # DistillConfig's own checks (a sensor, not exact; counts >= 1; the masks)
-    except ValueError as exc:
-        raise RecipeError(source, where, str(exc)) from None
-    return taught
 
 
 def _check_per_source(text: str, field: str, source: str) -> None:
@@ -475,10 +375,8 @@ def labels_dir(name: str, cache: str | os.PathLike | None = None) -> Path:
 
 def run_meta(recipe: Recipe, tiny: bool) -> dict[str, Any]:
     """The meta entries a recipe's checkpoints carry: {"recipe": {...the file's fields, "path", "sha256",
-    "tiny"}, "commit": {"sha", "dirty"}}, and for a network taught a sensor's view "sensor": its name
-    (`sgjax.stage2.checkpoint.meta_sensor`)."""
-    meta = {"recipe": recipe.to_dict() | {"tiny": tiny}, "commit": code_commit()}
-    return meta | ({"sensor": recipe.sensor()} if recipe.distill else {})
+    "tiny"}, "commit": {"sha", "dirty"}}."""
+    return {"recipe": recipe.to_dict() | {"tiny": tiny}, "commit": code_commit()}
 
 
 def run_label_set(labels: LabelSet, cache: str | os.PathLike | None = None, *, small_db: bool = False,
@@ -498,36 +396,6 @@ def run_label_set(labels: LabelSet, cache: str | os.PathLike | None = None, *, s
     summary = label.label(out, end, config, stage1=stage1, progress=progress, first_scene=first)
     if progress:
         print(f"labels {labels.name} ({out}):", *(f"  {line}" for line in summary.lines()), sep="\n")
-    return out
-
-
-def distill_dir(name: str, cache: str | os.PathLike | None = None) -> Path:
-    """Where distillation set `name` lives: <cache>/distill/<name> (cache None: `$SGJAX_CACHE`)."""
-    from sgjax.utils.cache import cache_dir
-
-    return Path(cache, "distill", name) if cache is not None else cache_dir("distill", name)
-
-
-def run_distill_set(taught: DistillSet, cache: str | os.PathLike | None = None, *, small_db: bool = False,
-                    progress: bool = True, gripper=None) -> Path:
-    """Distil (or resume distilling) one set into `distill_dir(taught.name, cache)` as `sgjax distill` does
-    -> the directory. small_db: the teacher's Stage 1 on the small primitive database; gripper: a
-    GripperSpec (None: the default one)."""
-    from sgjax.geometry.gripper import GripperSpec
-    from train import distill
-
-    config = taught.config()
-    out = distill_dir(taught.name, cache)
-    first, end = taught.scene_range
-    gripper = None if gripper is None or gripper == GripperSpec() else gripper
-    planner = None
-    if small_db:
-        from sgjax.stage1.database import DBConfig, load_database
-
-        spec = GripperSpec() if gripper is None else gripper
-        planner = distill.teacher_planner(config, gripper, load_database(DBConfig.for_gripper(spec, small=True),
-                                                                          progress=progress))
-    distill.distill(first, end, out, config, gripper=gripper, planner=planner, progress=progress)
     return out
 
 
@@ -562,11 +430,9 @@ def run_recipe(recipe: Recipe, out: str | os.PathLike, *, cache: str | os.PathLi
     run = recipe.tiny() if tiny else recipe
     spec = run.spec()
     dirs = [run_label_set(s, cache, small_db=tiny, progress=progress, gripper=spec) for s in run.labels]
-    dirs += [run_distill_set(s, cache, small_db=tiny, progress=progress, gripper=spec) for s in run.distill]
     config = run.train.config(run.network, spec)
-    init = {} if run.init is None else {"init": str(run.init_dir())}
     result = _trainer(run.network)(
-        [str(d) for d in dirs], out, config, progress=progress, extra_meta=run_meta(recipe, tiny), **init
+        [str(d) for d in dirs], out, config, progress=progress, extra_meta=run_meta(recipe, tiny)
     )
     return RecipeResult([str(d) for d in dirs], os.fspath(out), str(latest_checkpoint(out)), result)
 
@@ -590,10 +456,7 @@ def ship_lines(run_dir: str | os.PathLike, name: str) -> list[str]:
 
 def describe(recipe: Recipe) -> str:
     """One recipe in a few lines (`sgjax train --list-recipes`)."""
-    sets = "; ".join([f"{s.name} scenes {s.scenes} seed {s.seed} ({s.objects}, {s.camera})" for s in recipe.labels]
-                     + [f"distilled {s.name} scenes {s.scenes} seed {s.seed} ({s.objects}, {s.camera}, {s.masks})"
-                        for s in recipe.distill])
+    sets = "; ".join(f"{s.name} scenes {s.scenes} seed {s.seed} ({s.objects}, {s.camera})" for s in recipe.labels)
     gripper = "" if recipe.gripper is None else f", gripper {recipe.gripper}"
-    gripper += "" if recipe.init is None else f", from {recipe.init}"
     return (f"{recipe.name}  [{recipe.network}, {recipe.train.model}, {recipe.train.epochs} epochs, "
             f"~{recipe.cpu_hours:g} CPU h{gripper}]\n  {recipe.description}\n  labels: {sets}")

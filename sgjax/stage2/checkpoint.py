@@ -11,9 +11,7 @@ meta["gripper"]; `checkpoint_gripper(run_dir)` / `meta_gripper(meta)` read it ba
 the record, as the shipped defaults, counts as the default gripper), `shipped_dir` picks the shipped
 checkpoint made for a gripper (`sgjax/models/ernet_<gripper>` beside `ernet_default`), and
 `gripper_mismatch` words the warning a planner gives when it plans for another gripper than its network
-was trained for. A network taught a sensor's view (distilled, `train.distill`) records the sensor as
-meta["sensor"] (`meta_sensor`; without it: exact depth), and `shipped_dir(..., sensed=True)` prefers it for
-a depth camera's clouds (`sgjax/models/ernet_realsense` for the default gripper).
+was trained for.
 """
 
 from __future__ import annotations
@@ -132,7 +130,6 @@ def as_model(model, model_type: type, load_model: LoadModel, default: Callable[[
 # The gripper a checkpoint was trained for (the trainer records `gripper_to_dict(spec)` as meta["gripper"]).
 
 GRIPPER_ITEM = "gripper"  # the meta entry
-SENSOR_ITEM = "sensor"  # the meta entry of a network taught a sensor's view (absent: exact depth)
 IN_MEMORY = "an in-memory model"
 
 
@@ -155,57 +152,33 @@ def meta_gripper(meta: dict[str, Any], source: str = "checkpoint") -> GripperSpe
 
 
 @functools.lru_cache(maxsize=16)
-def _run_record(path: str, mtime: float) -> tuple[GripperSpec, str]:
-    meta = read_meta(path)
-    return meta_gripper(meta, path), meta_sensor(meta)
-
-
-def _record(run_dir: str | os.PathLike) -> tuple[GripperSpec, str]:
-    """(gripper, sensor) of a run directory's latest checkpoint, its meta read once per directory and
-    version (cached)."""
-    path = os.path.abspath(os.fspath(run_dir))
-    directory = os.path.join(path, CHECKPOINT_DIR)
-    mtime = os.path.getmtime(directory) if os.path.isdir(directory) else 0.0
-    return _run_record(path, mtime)
+def _run_gripper(path: str, mtime: float) -> GripperSpec:
+    return meta_gripper(read_meta(path), path)
 
 
 def checkpoint_gripper(run_dir: str | os.PathLike) -> GripperSpec:
     """The gripper the latest checkpoint of a run directory was trained for (`meta_gripper` of its meta):
-    what the command line and `sgjax.planner.Planner` compare with the gripper they plan for."""
-    return _record(run_dir)[0]
+    what the command line and `sgjax.planner.Planner` compare with the gripper they plan for. Read once
+    per directory and version (cached)."""
+    path = os.path.abspath(os.fspath(run_dir))
+    directory = os.path.join(path, CHECKPOINT_DIR)
+    mtime = os.path.getmtime(directory) if os.path.isdir(directory) else 0.0
+    return _run_gripper(path, mtime)
 
 
-def meta_sensor(meta: dict[str, Any]) -> str:
-    """The depth a checkpoint's network was taught for: meta["sensor"], the sensor model whose crops it
-    was distilled onto (`train.recipe`, `train.distill`), or "exact" (a simulator's render) without it."""
-    record = meta.get(SENSOR_ITEM) if isinstance(meta, dict) else None
-    return "exact" if record is None else str(record)
-
-
-def checkpoint_sensor(run_dir: str | os.PathLike) -> str:
-    """`meta_sensor` of a run directory's latest checkpoint: "exact" or the sensor it was taught for."""
-    return _record(run_dir)[1]
-
-
-def shipped_dir(default_dir: Path, spec: GripperSpec | None, sensed: bool = False) -> Path:
-    """The shipped checkpoint for gripper `spec` and depth: of `default_dir` (`sgjax/models/ernet_default`)
-    and its siblings shipped for other grippers or taught a sensor's view (`sgjax/models/ernet_<name>`),
-    those whose meta records `spec` (`checkpoint_gripper`; None: the default gripper); of them, for
-    `sensed` depth (a depth camera's) the first taught a sensor's view (`checkpoint_sensor`), else the
-    first taught exact depth (default_dir, then by name); default_dir when none records `spec` (planning
-    with it is then warned about, `warn_gripper`)."""
-    if spec is None and not sensed:
+def shipped_dir(default_dir: Path, spec: GripperSpec | None) -> Path:
+    """The shipped checkpoint for gripper `spec`: of `default_dir` (`sgjax/models/ernet_default`) and its
+    siblings shipped for other grippers (`sgjax/models/ernet_<gripper>`), the first (default_dir, then by
+    name) whose meta records `spec` (`checkpoint_gripper`); default_dir when none does (planning with it
+    is then warned about, `warn_gripper`) or when spec is None."""
+    if spec is None:
         return default_dir
-    want = GripperSpec() if spec is None else spec
     prefix = default_dir.name.rsplit("_", 1)[0] + "_"
     siblings = sorted(d for d in default_dir.parent.glob(prefix + "*") if d != default_dir)
-    mine = []
     for directory in [default_dir, *siblings]:
-        if (directory / CHECKPOINT_DIR).is_dir() and checkpoint_gripper(directory) == want:
-            if (checkpoint_sensor(directory) != "exact") == sensed:
-                return directory  # the first of the wanted depth: later ones' metas are not read
-            mine.append(directory)
-    return mine[0] if mine else default_dir
+        if (directory / CHECKPOINT_DIR).is_dir() and checkpoint_gripper(directory) == spec:
+            return directory
+    return default_dir
 
 
 def checkpoint_name(model, default_dir: Path) -> str:
@@ -272,11 +245,10 @@ def gripper_mismatch(network: str, checkpoint: str, trained: GripperSpec | None,
             "another gripper's E-RNet: docs/grippers.md)")
 
 
-def model_checkpoint(model, default_dir: Path, spec: GripperSpec, sensed: bool = False) -> tuple[str, GripperSpec | None]:
+def model_checkpoint(model, default_dir: Path, spec: GripperSpec) -> tuple[str, GripperSpec | None]:
     """(`checkpoint_name`, `model_gripper`) of the checkpoint behind `model` for a planner of gripper
-    `spec`: None is the one shipped for `spec` and the depth (`shipped_dir(default_dir, spec, sensed)`), a
-    run directory itself."""
-    shipped = shipped_dir(default_dir, spec, sensed)
+    `spec`: None is the one shipped for `spec` (`shipped_dir(default_dir, spec)`), a run directory itself."""
+    shipped = shipped_dir(default_dir, spec)
     return checkpoint_name(model, shipped), model_gripper(model, shipped)
 
 
@@ -290,7 +262,6 @@ def warn_mismatch(network: str, name: str, trained: GripperSpec | None, spec: Gr
     return message
 
 
-def warn_gripper(network: str, model, default_dir: Path, spec: GripperSpec, stacklevel: int = 3,
-                 sensed: bool = False) -> str | None:
+def warn_gripper(network: str, model, default_dir: Path, spec: GripperSpec, stacklevel: int = 3) -> str | None:
     """`warn_mismatch` for the checkpoint behind `model` (`model_checkpoint`) planning for `spec`."""
-    return warn_mismatch(network, *model_checkpoint(model, default_dir, spec, sensed), spec, stacklevel=stacklevel + 1)
+    return warn_mismatch(network, *model_checkpoint(model, default_dir, spec), spec, stacklevel=stacklevel + 1)

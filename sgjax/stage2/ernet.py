@@ -585,13 +585,12 @@ def load_model(run_dir: str | os.PathLike, epoch: int | None = None) -> tuple[ER
     return restore_run(run_dir, epoch, lambda meta: abstract_model(ERNetConfig.from_dict(meta["model_config"])))
 
 
-def load_default_model(spec: GripperSpec | None = None, sensed: bool = False) -> ERNet:
+def load_default_model(spec: GripperSpec | None = None) -> ERNet:
     """The shipped E-RNet checkpoint for gripper `spec` (`checkpoint.shipped_dir`: `sgjax/models/ernet_default/`,
-    a `sgjax train` run directory, unless one was shipped for `spec`; None: that one) and depth (sensed:
-    a depth camera's, for which `sgjax/models/ernet_realsense` is shipped; else exact depth).
+    a `sgjax train` run directory, unless one was shipped for `spec`; None: that one).
 
     Raises FileNotFoundError naming the path and how to make one when it is missing."""
-    path = checkpoint.shipped_dir(checkpoint.ERNET_DEFAULT_DIR, spec, sensed)
+    path = checkpoint.shipped_dir(checkpoint.ERNET_DEFAULT_DIR, spec)
     return checkpoint.load_default(
         path,
         load_model,
@@ -601,8 +600,8 @@ def load_default_model(spec: GripperSpec | None = None, sensed: bool = False) ->
     )
 
 
-def as_model(model, spec: GripperSpec | None = None, sensed: bool = False) -> ERNet:
-    """An ERNet from None (the shipped one for gripper `spec` and the depth, `load_default_model`), a
-    model, or a `sgjax train` run directory."""
-    return checkpoint.as_model(model, ERNet, load_model, lambda: load_default_model(spec, sensed),
+def as_model(model, spec: GripperSpec | None = None) -> ERNet:
+    """An ERNet from None (the shipped one for gripper `spec`, `load_default_model`), a model, or a
+    `sgjax train` run directory."""
+    return checkpoint.as_model(model, ERNet, load_model, lambda: load_default_model(spec),
                                "an ERNet, a `sgjax train` run directory")
