@@ -524,8 +524,7 @@ class Planner:
         """E-RNet's judgement of given grasps as a plan's Stage 2 makes it (the same Stage-2 scene cloud of
         `scene_points` [N, 3] and `seed`, the same compiled calls): poses [M, 4, 4], widths [M] ->
         {"eval_prob" [M], "refine_prob" [M, K], "valid" bool [M]} (NumPy; valid False where the closing
-        region holds no scene point, with probabilities 0). For scoring another sampler's grasps, or a
-        teacher's labels (`train.distill`)."""
+        region holds no scene point, with probabilities 0). For scoring another sampler's grasps."""
         cfg = self.config
         poses = np.asarray(poses, np.float32).reshape(-1, 4, 4)
         widths = np.asarray(widths, np.float32).reshape(-1)

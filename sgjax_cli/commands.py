@@ -508,32 +508,6 @@ def _cmd_label(args: argparse.Namespace) -> int:
     return 0
 
 
-def _cmd_distill(args: argparse.Namespace) -> int:
-    from sgjax.geometry.gripper import GripperSpec
-    from train import distill
-
-    try:
-        spec = _gripper(args)
-        first, end = _scene_range(args.scenes, None)
-        if end <= first:
-            raise ValueError(f"no scenes: --scenes {args.scenes} is empty")
-        n_objects = tuple(int(n) for n in args.n_objects.split(",") if n.strip())
-        config = distill.DistillConfig(sensor=args.camera, masks=args.masks, n_objects=n_objects, per_scene=args.per_scene,
-                                       seed=args.seed, objects=args.objects, teacher=args.teacher or "")
-        if spec != GripperSpec():
-            _prepare_database(spec, False)
-        written = distill.distill(first, end, args.out, config, gripper=None if spec == GripperSpec() else spec,
-                                  progress=not args.quiet)
-    except (ValueError, FileNotFoundError) as exc:
-        return _fail(str(exc))
-    except KeyboardInterrupt:
-        print(f"\ninterrupted: rerun the same command to continue; finished shards in {args.out} are kept", file=sys.stderr)
-        return 130
-    print(f"distilled scenes {first}..{end - 1} into {args.out}: {len(written)} shard(s) written now; "
-          f"train with: sgjax train --data {args.out} --init TEACHER_RUN ...")
-    return 0
-
-
 def _cmd_build_db(args: argparse.Namespace) -> int:
     from sgjax.stage1.database import (
         DBConfig,
@@ -1228,21 +1202,6 @@ def build_parser() -> argparse.ArgumentParser:
                    help="scene draws behind the 95 %% intervals of AUC and of the top grasp's success (0: none)")
     p.add_argument("--json", action="store_true", help="print every metric as JSON")
     p.set_defaults(func=_cmd_score_data)
-
-    p = sub.add_parser("distill", help="E-RNet's judgement of exact depth as soft labels for a sensor's crops (resumable)")
-    p.add_argument("--scenes", required=True, metavar="N|A:B", help="scenes 0..N-1, or A..B-1 with A:B")
-    p.add_argument("--out", required=True, help="directory of label shards (train/dataset.py format, soft labels)")
-    p.add_argument("--camera", default="realsense", choices=[s for s in SENSORS if s != "exact"],
-                   help="the sensor model whose crops the student sees (default realsense)")
-    p.add_argument("--masks", default="clusters", choices=MASKS, help="objects segmented (default) or the true masks")
-    p.add_argument("--teacher", default=None, metavar="RUN_DIR", help="the teacher E-RNet (default: the gripper's shipped one)")
-    p.add_argument("--n-objects", default="10,20", metavar="N,...", help="objects per scene, in turn (default 10,20)")
-    p.add_argument("--per-scene", type=int, default=96, help="candidates judged per scene (default 96, plus 32 perturbed)")
-    p.add_argument("--objects", default="seen", help="object set name or a folder of meshes (default: seen)")
-    p.add_argument("--seed", type=int, default=7, help="the scenes' seed (labelling's scenes of that seed)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
-    _add_gripper(p)
-    p.set_defaults(func=_cmd_distill)
 
     p = sub.add_parser("label", help="label grasps in simulated scenes for E-RNet training (resumable)")
     p.add_argument(

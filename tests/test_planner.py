@@ -710,3 +710,29 @@ def test_robust_choice_config_errors():
 
 # ---------------------------------------------------------------------------------------------
 
+
+
+def test_judge_gives_a_plans_own_scores(small_db):
+    """`Planner.judge` on a plan's scene and seed repeats the scores the plan's Stage 2 gave its candidates:
+    another sampler's grasps are judged as the planner's own are."""
+    from envs import sensors
+    from envs.objects import tiny_object_set
+    from envs.scene import stage2_scene_cloud
+    from sgjax import presets
+    from train.label import LabelConfig, labelled_scene
+
+    planner = Planner(db=small_db, config=presets.get("default", scene_cloud=stage2_scene_cloud()))
+    config = LabelConfig(n_objects=3, seed=7, object_set="tiny", held_out_objects=())
+    scene, _ = labelled_scene(0, tiny_object_set(), config)
+    obs = sensors.sense(scene, config.camera, "exact", seed=3).truth
+    plan = planner.plan(obs.points, obs.point_labels, config.camera.position, seed=3)
+    scores = plan.scores
+    assert scores is not None and len(scores["eval_prob"])
+    poses = np.stack([plan.candidates[o].poses[r] for o, r in zip(scores["object"], scores["object_candidate"])])
+    widths = np.asarray([plan.candidates[o].widths[r] for o, r in zip(scores["object"], scores["object_candidate"])])
+    judged = planner.judge(obs.points, poses, widths, seed=3)
+    assert np.array_equal(judged["valid"], scores["valid"])
+    assert np.allclose(judged["eval_prob"], scores["eval_prob"], atol=1e-6)
+    assert planner.judge(obs.points, poses[:0], widths[:0])["eval_prob"].shape == (0,)
+    with pytest.raises(ValueError, match="2 poses but 1 widths"):
+        planner.judge(obs.points, poses[:2], widths[:1])

@@ -13,8 +13,7 @@ One sample = one executed grasp (paper Sec. IV-C). Two formats:
     region_mask    bool[P]        True for real points (P = REGION_POINTS = 2048)
     pose           float32[4, 4]  the grasp (gripper -> world)
     width          float32[]      gripper opening (m)
-    label          int8[]         1: stable grasp (lift, reorient, 1 N disturbance), 0: not (or float32
-                                  in [0, 1]: a teacher's P(success), `SOFT_LABELS`)
+    label          int8[]         1: stable grasp (lift, reorient, 1 N disturbance), 0: not
     refine_labels  int8[3]        the same criterion for deepen 0.008 m + rotate -15 / 0 / +15 deg
     scene_seed     int64[]        the scene it came from (the train / held-out split is by scene)
     object_name    str            the target object
@@ -74,10 +73,6 @@ SAMPLE_FIELDS: dict[str, Field] = {
     "held_out_object": Field(np.dtype(bool), ()),
 }
 
-# Labels are 0 / 1 (int8) from trials, or soft (float32 in [0, 1]) from a teacher network (`train.distill`):
-# P(success) of the grasp and of each refinement as the teacher judged it. Losses and metrics take either.
-SOFT_LABELS = ("label", "refine_labels")
-
 # Per-sample fields of a label shard (the crop is made later from the scene clouds).
 LABEL_FIELDS: dict[str, Field] = {
     **{k: f for k, f in SAMPLE_FIELDS.items() if k not in ("region", "region_mask")},
@@ -129,9 +124,6 @@ def validate(samples: Mapping[str, np.ndarray], source: str = "samples", fields:
                 raise DatasetError(f"{source}: field {name!r} must be strings, got {value.dtype}")
             out[name] = value.astype(str)
             continue
-        if name in SOFT_LABELS and value.dtype.kind == "f":  # a teacher's probabilities (`train.distill`)
-            out[name] = value.astype(np.float32)
-            continue
         if field.dtype.kind in "bi" and value.dtype.kind not in "biu":
             raise DatasetError(f"{source}: field {name!r} must be {field.dtype}, got {value.dtype}")
         out[name] = value.astype(field.dtype)
@@ -141,11 +133,8 @@ def validate(samples: Mapping[str, np.ndarray], source: str = "samples", fields:
         raise DatasetError(f"{source}: NaN or inf in real region points")
     if not np.isfinite(out["pose"]).all() or not np.isfinite(out["width"]).all():
         raise DatasetError(f"{source}: NaN or inf in pose or width")
-    for name in SOFT_LABELS:
-        if out[name].dtype.kind == "f":
-            if not ((out[name] >= 0.0) & (out[name] <= 1.0)).all():  # NaN fails too
-                raise DatasetError(f"{source}: field {name!r} holds soft labels outside [0, 1]")
-        elif not np.isin(out[name], (0, 1)).all():
+    for name in ("label", "refine_labels"):
+        if not np.isin(out[name], (0, 1)).all():
             raise DatasetError(f"{source}: field {name!r} must hold 0 or 1")
     return out
 

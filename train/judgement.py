@@ -90,12 +90,11 @@ def top_rows(score: np.ndarray, group: np.ndarray) -> np.ndarray:
 def top_outcomes(score: np.ndarray, outcome: np.ndarray, group: np.ndarray) -> dict[str, int]:
     """Per group (scene), the trial outcome of the highest-scored sample: {outcome name: groups} in
     `Outcome` order (names, not codes, so the dict survives a JSON round trip unchanged). Whether the
-    scorer's misses are drops or collisions decides what would fix them. outcome [N]: Outcome codes, < 0
-    for a sample no trial was run for (a distillation set's, `train.distill`): such groups are not counted."""
+    scorer's misses are drops or collisions decides what would fix them. outcome [N]: Outcome codes."""
     if len(np.asarray(group)) == 0:
         return {}
     codes, counts = np.unique(np.asarray(outcome)[top_rows(score, group)], return_counts=True)
-    return {Outcome(int(c)).name.lower(): int(n) for c, n in zip(codes, counts) if c >= 0}
+    return {Outcome(int(c)).name.lower(): int(n) for c, n in zip(codes, counts)}
 
 
 def random_success(label: np.ndarray, group: np.ndarray) -> float | None:

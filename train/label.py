@@ -61,7 +61,6 @@ from sgjax.utils.files import atomic_write_text
 from train import dataset, sources
 
 CONFIG_FILE = "label_config.json"
-DISTILL_CONFIG_FILE = "distill.json"  # a distillation set's config (`train.distill`)
 GRIPPER_ENTRY = "gripper"  # label_config.json: the whole gripper (`gripper_to_dict`), for a non-default gripper
 SHARD_PATTERN = re.compile(r"^scenes-(\d{6})-(\d{6})\.npz$")
 # Seen objects never trained on (one thin, one round, one box-like, one flat extrusion): every
@@ -247,16 +246,13 @@ def read_config(out_dir: str | os.PathLike) -> LabelConfig:
 
 
 def directory_gripper(directory: str | os.PathLike) -> GripperSpec:
-    """The whole gripper a labelled directory was made with: its label_config.json's (or a distillation
-    set's distill.json's, `train.distill`) "gripper" entry, else
+    """The whole gripper a labelled directory was made with: its label_config.json's "gripper" entry, else
     (the default gripper, a directory written before the entry existed) its stage1.spec with the default
     force and friction; the default gripper without a label_config.json. Only the gripper is read, so
     a config this version would not read whole still gives it (as `train.dataset.directory_spec`)."""
     path = os.path.join(os.fspath(directory), CONFIG_FILE)
     if not os.path.exists(path):
-        path = os.path.join(os.fspath(directory), DISTILL_CONFIG_FILE)  # a distillation set records its gripper too
-        if not os.path.exists(path):
-            return GripperSpec()
+        return GripperSpec()
     with open(path) as fh:
         saved = json.load(fh)
     record = saved.get(GRIPPER_ENTRY) if isinstance(saved, dict) else None

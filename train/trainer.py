@@ -150,7 +150,7 @@ def classification_stats(prob, logits, label, weight, batch_weight, threshold: f
     prob [B] P(success), logits [B, 2], label [B] in {0, 1}, weight [B] (0: excluded), batch_weight [B]
     (0: padding) -> n, skipped (real samples excluded), correct, tp, fp, fn at `threshold`.
     """
-    label = (label >= 0.5).astype(jnp.int32)  # soft labels (a teacher's) count as their rounding
+    label = label.astype(jnp.int32)
     predicted = prob >= threshold
     return {
         "n": jnp.sum(weight),
@@ -166,7 +166,7 @@ def _batch_stats(output, batch: dataset.Batch, weight, loss, parts, threshold: f
     """E-RNet's weighted sums over one batch: the classifier's plus losses and refinement accuracy."""
     stats = classification_stats(output.eval_prob, output.eval_logits, batch.label, weight, batch.weight, threshold)
     n = stats["n"]
-    refine_ok = (output.refine_prob >= 0.5) == (batch.refine_labels >= 0.5)
+    refine_ok = (output.refine_prob >= 0.5) == (batch.refine_labels == 1)
     return {
         **stats,
         "loss": loss * n,
@@ -762,12 +762,6 @@ def score_samples(
     return totals, ({k: np.concatenate([p[k] for p in parts]) for k in parts[0]} if parts else None)
 
 
-def _hard(labels) -> np.ndarray:
-    """Labels as 0 / 1 (int8): soft ones (a teacher's, `train.distill`) rounded, for the metrics that
-    count successes."""
-    return (np.asarray(labels) >= 0.5).astype(np.int8)
-
-
 def judge_samples(per: Mapping[str, np.ndarray], samples: Mapping[str, np.ndarray], resamples: int = 0) -> dict[str, Any]:
     """`train.judgement.judge` of per-sample scores over the samples they scored (weight > 0: those
     with an anchor feature)."""
@@ -779,12 +773,12 @@ def judge_samples(per: Mapping[str, np.ndarray], samples: Mapping[str, np.ndarra
     refine = per.get("refine_prob")
     return judge(
         per["prob"][rows],
-        _hard(samples["label"])[rows],
+        np.asarray(samples["label"])[rows],
         source=column.get("source"),
         outcome=column.get("outcome"),
         scene=column.get("scene_seed"),
         refine_score=None if refine is None else refine[rows],
-        refine_label=None if refine is None else _hard(samples["refine_labels"])[rows],
+        refine_label=None if refine is None else np.asarray(samples["refine_labels"])[rows],
         source_names=SOURCES,
         resamples=resamples,
     )

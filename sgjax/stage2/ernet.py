@@ -400,20 +400,10 @@ def evaluation_loss(
 ) -> jax.Array:
     """Paper L_e: -1/B sum_i [(1 - eps) log p_{i, y_i} + eps / C sum_c log p_{i, c}].
 
-    logits[B, C], labels int[B] in [0, C), or float[B] in [0, 1] with C = 2: soft labels, a teacher's
-    P(success) (`train.distill`), the cross-entropy with [1 - y, y] and no smoothing (eps ignored): a
-    teacher trained with smoothing carries it in its probabilities already, and smoothing them again would
-    map a student's optimum p to 0.9 p + 0.05, towards 0.5; weights[B] (None: all 1; a weighted mean
-    otherwise) -> scalar.
+    logits[B, C], labels int[B] in [0, C), weights[B] (None: all 1; a weighted mean otherwise) -> scalar.
     """
     log_p = jax.nn.log_softmax(logits, axis=-1)
-    labels = jnp.asarray(labels)
-    if jnp.issubdtype(labels.dtype, jnp.floating):
-        if logits.shape[-1] != 2:
-            raise ValueError(f"soft labels need two classes, got logits of shape {logits.shape}")
-        y = labels.astype(log_p.dtype)
-        return _weighted_mean(-((1.0 - y) * log_p[:, 0] + y * log_p[:, 1]), weights)
-    picked = jnp.take_along_axis(log_p, labels.astype(jnp.int32)[:, None], axis=-1)[:, 0]
+    picked = jnp.take_along_axis(log_p, jnp.asarray(labels, jnp.int32)[:, None], axis=-1)[:, 0]
     per_sample = -((1.0 - epsilon) * picked + epsilon / logits.shape[-1] * jnp.sum(log_p, axis=-1))
     return _weighted_mean(per_sample, weights)
 
@@ -421,7 +411,7 @@ def evaluation_loss(
 def refinement_loss(logits: jax.Array, labels: jax.Array, weights: jax.Array | None = None) -> jax.Array:
     """Paper L_r: binary cross-entropy averaged over the M samples and K variants.
 
-    logits[B, K], labels {0, 1}[B, K] (or soft, in [0, 1]), weights[B] -> scalar."""
+    logits[B, K], labels {0, 1}[B, K], weights[B] -> scalar."""
     per_sample = jnp.mean(optax.sigmoid_binary_cross_entropy(logits, jnp.asarray(labels, logits.dtype)), axis=-1)
     return _weighted_mean(per_sample, weights)
 
