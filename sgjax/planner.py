@@ -532,19 +532,24 @@ class Planner:
             raise ValueError(f"got {len(poses)} poses but {len(widths)} widths")
         scene_pad, scene_mask = self._scene(_cloud(scene_points, "scene_points"), seed)
         thresholds = np.array([cfg.eval_threshold, cfg.refine_threshold], np.float32)
-        parts = []
-        for begin in range(0, len(poses), cfg.stage2_sizes[-1]):
-            p, w = poses[begin:begin + cfg.stage2_sizes[-1]], widths[begin:begin + cfg.stage2_sizes[-1]]
-            slots = cfg.stage2_slots(len(p))
-            padded_poses, padded_widths = policy.padded_batch(p, w, slots)
-            out, _ = self._score(scene_pad, scene_mask, padded_poses, padded_widths, np.arange(slots) < len(p), seed,
-                                 thresholds)
-            parts.append({k: np.asarray(out[k])[:len(p)] for k in ("eval_prob", "refine_prob", "valid")})
+        size = cfg.stage2_sizes[-1]
+        parts = [self._score_rows(scene_pad, scene_mask, poses[begin:begin + size], widths[begin:begin + size], seed,
+                                  thresholds) for begin in range(0, len(poses), size)]
         if not parts:
             k = self.model.config.n_refinements if scorers.has_refinement(self.model) else 0
             return {"eval_prob": np.zeros(0, np.float32), "refine_prob": np.zeros((0, k), np.float32),
                     "valid": np.zeros(0, bool)}
-        return {k: np.concatenate([part[k] for part in parts]) for k in parts[0]}
+        return {k: np.concatenate([part[k] for part in parts]) for k in ("eval_prob", "refine_prob", "valid")}
+
+    def _score_rows(self, scene_pad, scene_mask, poses, widths, seed: int, thresholds) -> dict[str, np.ndarray]:
+        """Stage 2 on n <= the largest batch size of grasps (poses [n, 4, 4], widths [n]), padded to the
+        Stage-2 batch size that holds them so that nothing compiles anew -> E-RNet's outputs for the n rows
+        (`_score`'s, NumPy)."""
+        n = len(poses)
+        slots = self.config.stage2_slots(n)
+        pad_poses, pad_widths = policy.padded_batch(poses, widths, slots)
+        out, _ = self._score(scene_pad, scene_mask, pad_poses, pad_widths, np.arange(slots) < n, seed, thresholds)
+        return {k: np.asarray(v)[:n] for k, v in out.items()}
 
     def stage2_cloud(self, scene_points, seed: int = 0) -> np.ndarray:
         """The Stage-2 scene cloud a plan of `scene_points` [N, 3] with `seed` crops from: its real points
@@ -769,12 +774,9 @@ class Planner:
         def judge(index):
             perturbed = _perturbed_poses(s.poses[index], cfg.robust)
             n = perturbed.shape[0] * PERTURBATIONS
-            slots = cfg.stage2_slots(n)  # a Stage-2 batch size, so that no plan compiles
-            pad_poses, pad_widths = policy.padded_batch(perturbed.reshape(n, 4, 4), np.repeat(s.widths[index], PERTURBATIONS),
-                                                        slots)
-            out, _ = self._score(s.scene_pad, s.scene_mask, pad_poses, pad_widths, np.arange(slots) < n, s.seed,
-                                 s.thresholds)
-            judged = np.where(out["valid"][:n], out["eval_prob"][:n], 0.0).reshape(-1, PERTURBATIONS)
+            out = self._score_rows(s.scene_pad, s.scene_mask, perturbed.reshape(n, 4, 4),
+                                   np.repeat(s.widths[index], PERTURBATIONS), s.seed, s.thresholds)
+            judged = np.where(out["valid"], out["eval_prob"], 0.0).reshape(-1, PERTURBATIONS)
             scores["perturbed_score"][index] = judged  # kept for whoever studies the choice (eval.counterfactual)
             return judged
 

@@ -711,7 +711,6 @@ def test_robust_choice_config_errors():
 # ---------------------------------------------------------------------------------------------
 
 
-
 def test_judge_gives_a_plans_own_scores(small_db):
     """`Planner.judge` on a plan's scene and seed repeats the scores the plan's Stage 2 gave its candidates:
     another sampler's grasps are judged as the planner's own are."""

@@ -203,19 +203,6 @@ def empty_labels() -> Samples:
     return {k: np.zeros((0, *f.shape), f.dtype) for k, f in LABEL_FIELDS.items()}
 
 
-def join_scenes(scenes: Sequence[tuple[Mapping[str, np.ndarray], Sequence[np.ndarray]]]) -> tuple[Samples, list[np.ndarray]]:
-    """Scenes' label samples, each with its own clouds (its `cloud_row` counting them from 0), as one
-    shard's columns and clouds (`write_label_shard`): each scene's rows offset by the clouds before it.
-    No scenes: `empty_labels()` and no cloud."""
-    parts, clouds = [], []
-    for samples, scene_clouds in scenes:
-        parts.append({**samples, "cloud_row": np.asarray(samples["cloud_row"]) + len(clouds)})
-        clouds += list(scene_clouds)
-    if not parts:
-        return empty_labels(), clouds
-    return {k: np.concatenate([p[k] for p in parts]) for k in LABEL_FIELDS}, clouds
-
-
 def write_label_shard(path: str | os.PathLike, samples: Mapping[str, np.ndarray], clouds: Sequence[np.ndarray]) -> str:
     """Write a label shard atomically: samples (LABEL_FIELDS columns) whose `cloud_row` indexes
     `clouds` (each [C_k, 3], the scene's real Stage-2 points in the order crops read them)."""

@@ -655,11 +655,6 @@ def prepare_objects(config: LabelConfig, objects: Sequence | None = None, progre
     return objects, identity
 
 
-def shard_base(start: int, end: int) -> str:
-    """The file name, without its suffix, of the shard of scenes [start, end) (`SHARD_PATTERN`)."""
-    return f"scenes-{start:06d}-{end:06d}"
-
-
 def label_block(
     out_dir: str | os.PathLike,
     start: int,
@@ -688,16 +683,18 @@ def label_block(
     records = []
     for run_start, run_end in _runs([i for i in range(start, end) if i not in done], config.scenes_per_shard):
         began = time.perf_counter()
-        scenes, stats = [], []
+        parts, clouds, stats = [], [], []
         for index in range(run_start, run_end):
             samples, cloud, scene_stats = label_scene(index, objects, labellers, config, backend, nthread)
             if len(samples["label"]):
-                scenes.append((samples, [cloud]))
+                samples["cloud_row"][:] = len(clouds)
+                parts.append(samples)
+                clouds.append(cloud)
             stats.append(scene_stats)
             if on_scene is not None:
                 on_scene(index, len(samples["label"]))
-        samples, clouds = dataset.join_scenes(scenes)
-        base = os.path.join(out_dir, shard_base(run_start, run_end))
+        samples = {k: np.concatenate([p[k] for p in parts]) for k in dataset.LABEL_FIELDS} if parts else dataset.empty_labels()
+        base = os.path.join(out_dir, f"scenes-{run_start:06d}-{run_end:06d}")
         seconds = time.perf_counter() - began
         worker = f"{socket.gethostname()}:{os.getpid()}"
         record = {"scenes": stats, "seconds": seconds, "objects": identity, "worker": worker}
